@@ -1,0 +1,27 @@
+"""mjx-multiarm: multi-arm UR5 scenes, kinematics and collision on JAX / MuJoCo MJX.
+
+Public entry points:
+
+- :func:`evaluate_arms`: numpy in/out end-effector poses and collision flags.
+- :func:`build_scene`: the padded multi-arm MuJoCo scene and its JAX kernel constants.
+- :func:`forward_kinematics`, :func:`scene_contacts`, :func:`swept_contacts`: the batched
+  JAX functions (jit/vmap-able) behind it.
+"""
+
+from mjx_multiarm.api import ArmEvaluation, evaluate_arms
+from mjx_multiarm.collision import Contacts, num_substeps, scene_contacts, swept_contacts
+from mjx_multiarm.kinematics import ArmFrames, forward_kinematics
+from mjx_multiarm.scene import Scene, build_scene
+
+__all__ = [
+    "ArmEvaluation",
+    "ArmFrames",
+    "Contacts",
+    "Scene",
+    "build_scene",
+    "evaluate_arms",
+    "forward_kinematics",
+    "num_substeps",
+    "scene_contacts",
+    "swept_contacts",
+]

@@ -1,0 +1,148 @@
+"""The padded multi-arm scene: one MuJoCo model with ``max_arms`` UR5 slots and a ground.
+
+A task with k arms activates k slots; the others are masked out of every computation
+(:mod:`mjx_multiarm.collision`), so one compiled function serves every team size. The
+MuJoCo model is composed with ``MjSpec``: each slot attaches a copy of the arm MJCF under
+the prefix ``arm{i}/``; its base is a mocap body placed at the arm's base pose.
+
+Which capsule pairs can collide is read off the compiled model with MuJoCo's own filtering
+rules (contype/conaffinity, weld bodies, parent-child filter, ``<exclude>``), so the JAX
+collision kernel and MuJoCo C (``mj_collision``) check exactly the same pairs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import mujoco
+import numpy as np
+
+from mjx_multiarm.robot import ARM_XML, ArmModel, load_arm
+
+#: Where MuJoCo-side models park inactive slots: far apart and far from every task.
+PARKING_ORIGIN = np.array([1000.0, 0.0, 0.0])
+PARKING_SPACING = 10.0
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CollisionPairs:
+    """The capsule pairs that count as collisions, in arm-local capsule indices.
+
+    Attributes:
+      between_arms: [ncap, ncap] bool; capsule a of one arm vs capsule b of another arm.
+      self_pairs: [nself, 2] capsule index pairs within one arm (non-adjacent links).
+      ground: [nground] capsules checked against the ground plane (the base excepted).
+    """
+
+    between_arms: np.ndarray
+    self_pairs: np.ndarray
+    ground: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Scene:
+    """A compiled padded scene: the MuJoCo model plus the constants of the JAX kernels.
+
+    Hashable by identity, so it can be a static argument of ``jax.jit``.
+    """
+
+    max_arms: int
+    arm: ArmModel
+    mj_model: mujoco.MjModel
+    pairs: CollisionPairs
+    capsule_geoms: np.ndarray  # [max_arms, ncap] geom ids of each slot's capsules
+    ground_geom: int
+    mocap_ids: np.ndarray  # [max_arms] mocap index of each slot's base
+    qpos_adr: np.ndarray  # [max_arms, 6] qpos address of each slot's joints
+
+
+def _arm_spec(xml_path: str) -> mujoco.MjSpec:
+    return mujoco.MjSpec.from_file(xml_path)
+
+
+def build_spec(max_arms: int = 10, arm_xml: str | None = None) -> mujoco.MjSpec:
+    """Compose the padded scene: ground plane, light, and ``max_arms`` arm slots."""
+    if not 1 <= max_arms <= 64:
+        raise ValueError(f"max_arms must be in [1, 64], got {max_arms}")
+    spec = mujoco.MjSpec()
+    spec.modelname = f"multiarm_{max_arms}"
+    spec.worldbody.add_geom(
+        name="ground", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05], rgba=[0.9, 0.9, 0.9, 1]
+    )
+    spec.worldbody.add_light(pos=[0, 0, 4], dir=[0, 0, -1], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
+    for i in range(max_arms):
+        spec.attach(_arm_spec(str(arm_xml or ARM_XML)), prefix=f"arm{i}/", frame=spec.worldbody.add_frame())
+        # The base stands on the ground: never a ground contact.
+        spec.add_exclude(bodyname1="world", bodyname2=f"arm{i}/base_link")
+    return spec
+
+
+def _may_collide(m: mujoco.MjModel, g1: int, g2: int) -> bool:
+    """MuJoCo's broad-phase filter for a geom pair (what ``mj_collision`` would test)."""
+    if not (m.geom_contype[g1] & m.geom_conaffinity[g2] or m.geom_contype[g2] & m.geom_conaffinity[g1]):
+        return False
+    b1, b2 = m.geom_bodyid[g1], m.geom_bodyid[g2]
+    w1, w2 = m.body_weldid[b1], m.body_weldid[b2]
+    if w1 == w2:
+        return False
+    parent1, parent2 = m.body_weldid[m.body_parentid[w1]], m.body_weldid[m.body_parentid[w2]]
+    filterparent = not m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_FILTERPARENT
+    if filterparent and w1 != 0 and w2 != 0 and (w1 == parent2 or w2 == parent1):
+        return False
+    signature = (min(b1, b2) << 16) + max(b1, b2)
+    return signature not in set(m.exclude_signature.tolist())
+
+
+def _collision_pairs(m: mujoco.MjModel, capsule_geoms: np.ndarray, ground: int) -> CollisionPairs:
+    """Read the pair sets off slot 0 (and slot 1 for pairs between arms)."""
+    ncap = capsule_geoms.shape[1]
+    slot0 = capsule_geoms[0]
+    between = np.zeros((ncap, ncap), bool)
+    if len(capsule_geoms) > 1:
+        between = np.array([[_may_collide(m, a, b) for b in capsule_geoms[1]] for a in slot0])
+    self_pairs = [(a, b) for a in range(ncap) for b in range(a + 1, ncap) if _may_collide(m, slot0[a], slot0[b])]
+    return CollisionPairs(
+        between_arms=between,
+        self_pairs=np.array(self_pairs, dtype=np.int32).reshape(-1, 2),
+        ground=np.array([c for c in range(ncap) if _may_collide(m, ground, slot0[c])], dtype=np.int32),
+    )
+
+
+@functools.cache
+def build_scene(max_arms: int = 10, arm_xml: str | None = None) -> Scene:
+    """Build (once per argument set) the padded scene with ``max_arms`` slots."""
+    arm = load_arm(arm_xml)
+    m = build_spec(max_arms, arm_xml).compile()
+    capsule_geoms = np.array([[m.geom(f"arm{i}/{name}").id for name in arm.capsule_names] for i in range(max_arms)])
+    ground = m.geom("ground").id
+    return Scene(
+        max_arms=max_arms,
+        arm=arm,
+        mj_model=m,
+        pairs=_collision_pairs(m, capsule_geoms, ground),
+        capsule_geoms=capsule_geoms,
+        ground_geom=ground,
+        mocap_ids=np.array([m.body_mocapid[m.body(f"arm{i}/base_link").id] for i in range(max_arms)]),
+        qpos_adr=np.array(
+            [[m.jnt_qposadr[m.joint(f"arm{i}/{j}").id] for j in arm.joint_names] for i in range(max_arms)]
+        ),
+    )
+
+
+def set_mujoco_state(scene: Scene, data: mujoco.MjData, base_pos, base_quat, joints, active) -> None:
+    """Write one padded scene into ``data`` (numpy; quaternions wxyz) and run ``mj_kinematics``.
+
+    Inactive slots are parked far from the workspace at the home configuration, so MuJoCo C
+    sees only the active arms' contacts.
+    """
+    for i in range(scene.max_arms):
+        mocap = scene.mocap_ids[i]
+        if active[i]:
+            data.mocap_pos[mocap], data.mocap_quat[mocap] = base_pos[i], base_quat[i]
+            data.qpos[scene.qpos_adr[i]] = joints[i]
+        else:
+            data.mocap_pos[mocap] = PARKING_ORIGIN + [PARKING_SPACING * i, 0.0, 0.0]
+            data.mocap_quat[mocap] = [1.0, 0.0, 0.0, 0.0]
+            data.qpos[scene.qpos_adr[i]] = scene.arm.home
+    mujoco.mj_kinematics(scene.mj_model, data)

@@ -1,0 +1,53 @@
+"""Shared fixtures: random multi-arm scenes and the optional reference data."""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+import pytest
+
+from mjx_multiarm.robot import load_arm
+
+REFERENCE = pathlib.Path(__file__).resolve().parents[2] / "shared" / "reference" / "ur5"
+
+
+@pytest.fixture
+def reference_dir() -> pathlib.Path:
+    """``../shared/reference/ur5`` beside the checkout; skips where it is absent."""
+    if not REFERENCE.is_dir():
+        pytest.skip(f"reference data not found at {REFERENCE}")
+    return REFERENCE
+
+
+def random_bases(rng: np.random.Generator, num_arms: int, min_gap=0.3, max_gap=1.5) -> np.ndarray:
+    """Planar base poses [num_arms, 3] (x, y, yaw): each base 0.3-1.5 m from an earlier one."""
+    bases = np.zeros((num_arms, 3))
+    bases[:, 2] = rng.uniform(-np.pi, np.pi, num_arms)
+    for i in range(1, num_arms):
+        while True:
+            anchor = bases[rng.integers(i), :2]
+            angle, dist = rng.uniform(-np.pi, np.pi), rng.uniform(min_gap, max_gap)
+            xy = anchor + dist * np.array([np.cos(angle), np.sin(angle)])
+            if np.min(np.linalg.norm(bases[:i, :2] - xy, axis=1)) >= min_gap:
+                bases[i, :2] = xy
+                break
+    return bases
+
+
+def random_joints(rng: np.random.Generator, shape, spread=1.0) -> np.ndarray:
+    """Joint configurations [*shape, 6]: home plus Gaussian noise, within the joint limits."""
+    arm = load_arm()
+    q = arm.home + rng.normal(0.0, spread, (*shape, 6))
+    return np.clip(q, arm.joint_range[:, 0], arm.joint_range[:, 1])
+
+
+def random_padded_scenes(rng: np.random.Generator, count: int, max_arms: int, spread=1.0):
+    """``count`` padded scenes with 1..max_arms active arms: (bases, joints, active)."""
+    bases = np.zeros((count, max_arms, 3))
+    active = np.zeros((count, max_arms), bool)
+    for k in range(count):
+        n = 1 + k % max_arms
+        bases[k, :n] = random_bases(rng, n)
+        active[k, :n] = True
+    return bases, random_joints(rng, (count, max_arms), spread), active

@@ -1,0 +1,178 @@
+"""Collision checking against MuJoCo C on the same model, hand-made cases, padding."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from conftest import random_padded_scenes
+from mjx_multiarm import evaluate_arms, num_substeps, scene_contacts, swept_contacts
+from mjx_multiarm.api import base_pose_arrays
+from mjx_multiarm.scene import build_scene, set_mujoco_state
+
+MAX_ARMS = 10
+
+
+def _jax_contacts(scene, bases, joints, active):
+    pos, quat = base_pose_arrays(bases)
+    f = jax.jit(lambda *a: scene_contacts(scene, *a))
+    contacts = f(jnp.asarray(pos, jnp.float32), jnp.asarray(quat, jnp.float32), jnp.asarray(joints, jnp.float32), active)
+    return jax.tree.map(np.asarray, contacts)
+
+
+def _mujoco_collided(scene, data, bases, joints, active):
+    """Per-arm verdict of ``mj_collision`` (a contact with negative distance)."""
+    pos, quat = base_pose_arrays(bases)
+    set_mujoco_state(scene, data, pos, quat, joints, active)
+    mujoco.mj_collision(scene.mj_model, data)
+    touching = np.zeros(scene.mj_model.ngeom, bool)
+    contact = data.contact
+    hits = contact.geom[: data.ncon][contact.dist[: data.ncon] < 0]
+    touching[hits.ravel()] = True
+    return touching[scene.capsule_geoms].any(axis=1) & active
+
+
+def _mujoco_distances(scene, data, bases, joints, active):
+    """Per-arm smallest signed distance by kind from ``mj_geomDistance`` over the same pairs."""
+    pos, quat = base_pose_arrays(bases)
+    set_mujoco_state(scene, data, pos, quat, joints, active)
+    m, geoms, pairs = scene.mj_model, scene.capsule_geoms, scene.pairs
+    out = {kind: np.full(scene.max_arms, np.inf) for kind in ("between", "self", "ground")}
+    arms = np.flatnonzero(active)
+    for i in arms:
+        for a, b in pairs.self_pairs:
+            out["self"][i] = min(out["self"][i], mujoco.mj_geomDistance(m, data, geoms[i, a], geoms[i, b], 100.0, None))
+        for c in pairs.ground:
+            out["ground"][i] = min(out["ground"][i], mujoco.mj_geomDistance(m, data, scene.ground_geom, geoms[i, c], 100.0, None))
+        for j in arms[arms > i]:
+            for a, b in zip(*np.nonzero(pairs.between_arms)):
+                d = mujoco.mj_geomDistance(m, data, geoms[i, a], geoms[j, b], 100.0, None)
+                out["between"][i], out["between"][j] = min(out["between"][i], d), min(out["between"][j], d)
+    return out
+
+
+def test_verdicts_agree_with_mujoco_on_10000_random_scenes():
+    rng = np.random.default_rng(0)
+    scene = build_scene(MAX_ARMS)
+    data = mujoco.MjData(scene.mj_model)
+    bases, joints, active = random_padded_scenes(rng, 10_000, MAX_ARMS)
+    ours = _jax_contacts(scene, bases, joints, active).collided
+    theirs = np.array([_mujoco_collided(scene, data, bases[k], joints[k], active[k]) for k in range(len(bases))])
+    disagree = np.argwhere(ours != theirs)
+    assert len(disagree) == 0, f"{len(disagree)} arm verdicts differ, first at (scene, arm) {disagree[:5].tolist()}"
+    # A good share of both verdicts, and every kind of contact, occurs.
+    share = ours[active].mean()
+    assert 0.2 < share < 0.8, share
+
+
+def test_signed_distances_match_mj_geom_distance():
+    rng = np.random.default_rng(1)
+    scene = build_scene(MAX_ARMS)
+    data = mujoco.MjData(scene.mj_model)
+    bases, joints, active = random_padded_scenes(rng, 40, MAX_ARMS)
+    ours = _jax_contacts(scene, bases, joints, active)
+    for k in range(len(bases)):
+        theirs = _mujoco_distances(scene, data, bases[k], joints[k], active[k])
+        for kind, mine in (("between", ours.between_arms), ("self", ours.self), ("ground", ours.ground)):
+            finite = np.isfinite(theirs[kind])
+            np.testing.assert_array_equal(np.isfinite(mine[k]), finite, err_msg=kind)
+            np.testing.assert_allclose(mine[k][finite], theirs[kind][finite], atol=1e-4, err_msg=f"scene {k} {kind}")
+
+
+def _two_arms(joints_a, joints_b, distance=0.9):
+    """Two arms facing each other along x, ``distance`` apart."""
+    return np.array([[0.0, 0.0, 0.0], [distance, 0.0, np.pi]]), np.array([joints_a, joints_b], float)
+
+
+# At zero pan the arm stretches along +x of its base (toward the other arm, turned by pi).
+REACH_OUT = [0.0, 0.0, 0.0, -np.pi / 2, 0.0, 0.0]  # horizontal, stretched out
+UPRIGHT = [0.0, -np.pi / 2, 0.0, -np.pi / 2, 0.0, 0.0]
+
+
+def _reference_verdict(scene, bases, joints):
+    return _mujoco_collided(scene, mujoco.MjData(scene.mj_model), bases, joints, np.ones(len(joints), bool))
+
+
+def test_two_arms_reaching_into_each_other():
+    scene = build_scene(2)
+    bases, joints = _two_arms(REACH_OUT, REACH_OUT)
+    result = evaluate_arms(bases, joints)
+    assert result.collided.all() and (result.distance_between_arms < 0).all()
+    np.testing.assert_array_equal(result.collided, _reference_verdict(scene, bases, joints))
+    far = evaluate_arms(*_two_arms(UPRIGHT, UPRIGHT, distance=1.8))
+    assert not far.collided.any()
+
+
+def test_arm_folded_onto_itself():
+    folded = [0.0, -np.pi / 2, 3.1, 0.0, 0.0, 0.0]  # elbow fully bent: forearm onto upper arm
+    result = evaluate_arms(np.zeros((1, 3)), np.array([folded]))
+    assert result.collided[0] and result.distance_self[0] < 0
+    assert result.distance_ground[0] > 0 and np.isinf(result.distance_between_arms[0])
+
+
+def test_arm_through_the_floor():
+    down = [0.0, np.pi / 2, 0.0, 0.0, 0.0, 0.0]  # upper arm pointing straight down
+    result = evaluate_arms(np.zeros((1, 3)), np.array([down]))
+    assert result.collided[0] and result.distance_ground[0] < -0.3
+    assert not evaluate_arms(np.zeros((1, 3)), np.array([UPRIGHT])).collided[0]
+
+
+def test_swept_motion_collides_between_free_endpoints():
+    """Arm 1 swings its pan through arm 0: both ends are free, the middle is not."""
+    scene = build_scene(2)
+    bases = np.array([[0.0, 0.0, 0.0], [0.75, 0.0, np.pi]])
+    start = np.array([UPRIGHT, [-1.2, 0.0, 0.0, -np.pi / 2, 0.0, 0.0]])
+    end = start.copy()
+    end[1, 0] = 1.2
+    pos, quat = base_pose_arrays(bases)
+    active = np.ones(2, bool)
+    endpoints = [evaluate_arms(bases, q) for q in (start, end)]
+    assert not any(r.collided.any() for r in endpoints)
+    steps = num_substeps(start, end)
+    assert steps == 48  # 2.4 rad at 0.05 rad per check
+    swept = swept_contacts(scene, pos, quat, jnp.asarray(start, jnp.float32), jnp.asarray(end, jnp.float32), active, steps)
+    assert bool(swept.collided.all())
+    # Checking only the end point misses it; the sweep result includes the end point.
+    single = swept_contacts(scene, pos, quat, jnp.asarray(start, jnp.float32), jnp.asarray(end, jnp.float32), active, 1)
+    assert not bool(single.collided.any())
+
+
+def test_padding_does_not_change_results():
+    """The same 3-arm task in a 3-slot and a 10-slot model, padded slots anywhere."""
+    rng = np.random.default_rng(2)
+    bases, joints, _ = random_padded_scenes(rng, 30, 3)
+    small = evaluate_arms(bases, joints)
+    padded_bases = np.zeros((30, 10, 3))
+    padded_joints = rng.normal(size=(30, 10, 6))  # junk in the inactive slots
+    padded_bases[:, 3:, :2] = 0.1  # inactive bases on top of the active ones
+    padded_bases[:, :3], padded_joints[:, :3] = bases, joints
+    active = np.zeros((30, 10), bool)
+    active[:, :3] = True
+    big = evaluate_arms(padded_bases, padded_joints, active, max_arms=10)
+    np.testing.assert_array_equal(big.collided[:, :3], small.collided)
+    # Values agree to float32 rounding (XLA vectorizes the two shapes differently).
+    for field in ("ee_pos", "ee_quat", "points", "min_distance", "distance_between_arms", "distance_self"):
+        np.testing.assert_allclose(getattr(big, field)[:, :3], getattr(small, field), atol=1e-6, err_msg=field)
+    assert np.isinf(big.min_distance[:, 3:]).all() and not big.collided[:, 3:].any()
+
+
+def test_inactive_slot_between_active_ones():
+    bases, joints = _two_arms(REACH_OUT, REACH_OUT)
+    three = np.stack([bases[0], [0.45, 0.0, 0.0], bases[1]])
+    three_joints = np.stack([joints[0], REACH_OUT, joints[1]])
+    result = evaluate_arms(three, three_joints, np.array([True, False, True]))
+    assert result.collided[[0, 2]].all() and not result.collided[1]
+    alone = evaluate_arms(three, three_joints, np.array([True, False, False]))
+    assert not alone.collided.any()
+
+
+@pytest.mark.parametrize("num_arms", [1, 2, 10])
+def test_every_slot_count_compiles_and_has_consistent_pairs(num_arms):
+    scene = build_scene(num_arms)
+    pairs = scene.pairs
+    assert len(pairs.self_pairs) > 0 and 0 not in pairs.ground  # the base never meets the ground
+    if num_arms > 1:
+        np.testing.assert_array_equal(pairs.between_arms, pairs.between_arms.T)
