@@ -38,6 +38,7 @@ class ArmModel:
     joint_range: np.ndarray  # [6, 2] (lower, upper), rad
     velocity_limit: np.ndarray  # [6] rad/s
     home: np.ndarray  # [6] home configuration
+    ground_exempt_bodies: tuple[str, ...]  # never checked against the ground
     capsule_names: tuple[str, ...]
     capsule_body: np.ndarray  # [ncap] body of each capsule
     capsule_ends: np.ndarray  # [ncap, 2, 3] segment end points in the body frame
@@ -51,6 +52,15 @@ class ArmModel:
     @property
     def num_capsules(self) -> int:
         return len(self.capsule_names)
+
+
+def _custom_text(m: mujoco.MjModel, name: str) -> str:
+    """The data of a ``<custom><text>`` element."""
+    i = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_TEXT, name)
+    if i < 0:
+        raise ValueError(f"arm MJCF: missing <custom><text name='{name}'>")
+    start = m.text_adr[i]
+    return bytes(m.text_data[start : start + m.text_size[i]]).rstrip(b"\0").decode()
 
 
 def _capsule_ends(m: mujoco.MjModel, g: int) -> np.ndarray:
@@ -87,6 +97,7 @@ def load_arm(xml_path: str | None = None) -> ArmModel:
         joint_range=m.jnt_range.copy(),
         velocity_limit=m.numeric("joint_velocity_limit").data.copy(),
         home=m.key("home").qpos.copy(),
+        ground_exempt_bodies=tuple(_custom_text(m, "ground_exempt_bodies").split()),
         capsule_names=tuple(m.geom(g).name for g in geoms),
         capsule_body=np.array([m.geom_bodyid[g] - 1 for g in geoms]),
         capsule_ends=np.stack([_capsule_ends(m, g) for g in geoms]),

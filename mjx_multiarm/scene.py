@@ -71,10 +71,11 @@ def build_spec(max_arms: int = 10, arm_xml: str | None = None) -> mujoco.MjSpec:
         name="ground", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05], rgba=[0.9, 0.9, 0.9, 1]
     )
     spec.worldbody.add_light(pos=[0, 0, 4], dir=[0, 0, -1], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
+    exempt = load_arm(arm_xml).ground_exempt_bodies
     for i in range(max_arms):
         spec.attach(_arm_spec(str(arm_xml or ARM_XML)), prefix=f"arm{i}/", frame=spec.worldbody.add_frame())
-        # The base stands on the ground: never a ground contact.
-        spec.add_exclude(bodyname1="world", bodyname2=f"arm{i}/base_link")
+        for body in exempt:  # bodies that stand on or cannot reach the ground
+            spec.add_exclude(bodyname1="world", bodyname2=f"arm{i}/{body}")
     return spec
 
 

@@ -1,0 +1,70 @@
+"""Property-based tests of the geometric kernels."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mjx_multiarm.collision import segment_distance
+from mjx_multiarm.transforms import quat_mul, quat_to_mat, wxyz_to_xyzw, xyzw_to_wxyz
+
+coordinate = st.floats(-1.0, 1.0, allow_nan=False, width=32)
+point = st.tuples(coordinate, coordinate, coordinate).map(np.array)
+
+
+def _segments_distance(p1, q1, p2, q2):
+    args = [jnp.asarray(np.asarray(x, np.float32)[:, None]) for x in (p1, q1, p2, q2)]
+    return float(segment_distance(*args)[0])
+
+
+def _brute_force(p1, q1, p2, q2, n=401):
+    s = np.linspace(0, 1, n)[:, None]
+    a, b = p1 + s * (q1 - p1), p2 + s * (q2 - p2)
+    return np.min(np.linalg.norm(a[:, None] - b[None], axis=-1))
+
+
+@settings(max_examples=200, deadline=None)
+@given(point, point, point, point)
+def test_segment_distance_matches_dense_sampling(p1, q1, p2, q2):
+    if min(np.linalg.norm(q1 - p1), np.linalg.norm(q2 - p2)) < 1e-3:
+        return  # capsules always have a positive length
+    ours = _segments_distance(p1, q1, p2, q2)
+    brute = _brute_force(p1, q1, p2, q2)
+    # The true minimum is at most the sampled one, and within the sampling step of it.
+    step = (np.linalg.norm(q1 - p1) + np.linalg.norm(q2 - p2)) / 400
+    assert ours <= brute + 1e-5
+    assert ours >= brute - step - 1e-5
+
+
+@settings(max_examples=100, deadline=None)
+@given(point, point, point, point, st.floats(-np.pi, np.pi), point)
+def test_segment_distance_is_symmetric_and_rigid_invariant(p1, q1, p2, q2, angle, shift):
+    if min(np.linalg.norm(q1 - p1), np.linalg.norm(q2 - p2)) < 1e-3:
+        return
+    d = _segments_distance(p1, q1, p2, q2)
+    assert abs(d - _segments_distance(p2, q2, p1, q1)) < 1e-5
+    assert abs(d - _segments_distance(q1, p1, q2, p2)) < 1e-5
+    rot = np.asarray(quat_to_mat(np.array([np.cos(angle / 2), 0.6 * np.sin(angle / 2), 0, 0.8 * np.sin(angle / 2)])))
+    moved = [rot @ x + shift for x in (p1, q1, p2, q2)]
+    assert abs(d - _segments_distance(*moved)) < 1e-5
+
+
+def test_parallel_and_touching_segments():
+    x = np.array([1.0, 0, 0])
+    assert abs(_segments_distance(np.zeros(3), x, np.array([0.5, 0.2, 0]), np.array([1.5, 0.2, 0])) - 0.2) < 1e-6
+    assert abs(_segments_distance(np.zeros(3), x, np.array([2.0, 0, 0]), np.array([3.0, 0, 0])) - 1.0) < 1e-6
+    assert _segments_distance(np.zeros(3), x, np.array([0.5, -1, 0]), np.array([0.5, 1, 0])) < 1e-6
+
+
+@given(st.tuples(coordinate, coordinate, coordinate, coordinate))
+def test_quaternion_conventions(q):
+    q = np.array(q, np.float64)
+    if np.linalg.norm(q) < 1e-3:
+        return
+    q /= np.linalg.norm(q)
+    np.testing.assert_allclose(np.asarray(xyzw_to_wxyz(wxyz_to_xyzw(q))), q, atol=1e-7)
+    rot = np.asarray(quat_to_mat(q))
+    np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(quat_to_mat(quat_mul(q, q))), rot @ rot, atol=1e-5)
