@@ -7,6 +7,7 @@ motions of a batch of scenes inside one ``jit``-compiled ``lax.scan`` (compile e
     python benchmarks/core_throughput.py --arms 1,4,10 --batch 1,64,1024
     python benchmarks/core_throughput.py --arms 4 --batch 1024 --json
     python benchmarks/core_throughput.py --arms 4 --batch 1024 --impl mjx-kinematics
+    python benchmarks/core_throughput.py --arms 4 --batch 256 --impl mjx-collision
 
 With ``--json`` every measurement also prints one JSON line (arms, batch, device,
 arm_evals_per_s, ...); a single measurement's JSON line is the last line of the output.
@@ -45,8 +46,9 @@ def _ours(scene):
     return evaluate
 
 
-def _mjx_kinematics(scene):
-    """MJX's generic kinematics on the padded model (comparison only, no collision)."""
+def _mjx(scene, collide: bool):
+    """MJX's generic pipeline on the same padded model (for comparison): kinematics only,
+    or kinematics + ``mjx.collision`` over the same filtered capsule pairs."""
     from mujoco import mjx
 
     model = mjx.put_model(scene.mj_model)
@@ -60,7 +62,10 @@ def _mjx_kinematics(scene):
             mocap_pos=data.mocap_pos.at[mocap].set(base_pos),
             mocap_quat=data.mocap_quat.at[mocap].set(base_quat),
         )
-        return mjx.kinematics(model, data).geom_xpos[:, 2] < 0
+        data = mjx.kinematics(model, data)
+        if collide:
+            return jnp.any(mjx.collision(model, data)._impl.contact.dist < 0)
+        return jnp.any(data.geom_xpos[:, 2] < 0)
 
     def evaluate(base_pos, base_quat, joints, active):
         return jax.vmap(one)(base_pos, base_quat, joints)
@@ -68,7 +73,11 @@ def _mjx_kinematics(scene):
     return evaluate
 
 
-IMPLEMENTATIONS = {"ours": _ours, "mjx-kinematics": _mjx_kinematics}
+IMPLEMENTATIONS = {
+    "ours": _ours,
+    "mjx-kinematics": lambda scene: _mjx(scene, collide=False),
+    "mjx-collision": lambda scene: _mjx(scene, collide=True),
+}
 
 
 def measure(num_arms, batch, device, impl="ours", steps=20, min_seconds=2.0, seed=0):

@@ -23,6 +23,8 @@ from mjx_multiarm.scene import Scene
 
 #: Default largest joint motion between two swept-collision checks (rad).
 SWEEP_RESOLUTION = 0.05
+#: Scenes per collision chunk on CPU (measured best of 16-256 for 4 and 10 arms).
+CPU_CHUNK = 64
 
 
 @struct.dataclass
@@ -78,22 +80,15 @@ def _arm_pair_tables(max_arms: int):
     return first, second, incidence
 
 
-def capsule_contacts(scene: Scene, capsules, active) -> Contacts:
-    """Signed distances of posed capsules.
-
-    Args:
-      scene: the padded scene.
-      capsules: [..., max_arms, ncap, 2, 3] world capsule segments (``ArmFrames.capsules``).
-      active: [..., max_arms] bool; inactive slots never collide and never affect others.
-    """
+def _flat_contacts(scene: Scene, capsules, active) -> Contacts:
+    """The kernel on a flat batch: capsules [N, A, C, 2, 3], active [N, A] -> fields [N, A]."""
     pairs, radius = scene.pairs, scene.arm.capsule_radius
-    batch = capsules.shape[:-4]
-    num_arms, num_caps = capsules.shape[-4:-2]
+    num_arms = capsules.shape[1]
     # Scenes go last, coordinates first: every operation below is elementwise over rows of
     # scenes, which XLA vectorizes; reductions run over the leading (small) axes.
-    ends = jnp.moveaxis(capsules.reshape(-1, num_arms, num_caps, 2, 3), (4, 3, 0), (0, 1, 4))
+    ends = jnp.moveaxis(capsules, (4, 3, 0), (0, 1, 4))
     p, q = ends[:, 0], ends[:, 1]  # [3, A, C, N]
-    act = jnp.reshape(active, (-1, num_arms)).T  # [A, N]
+    act = active.T  # [A, N]
     inf = jnp.asarray(jnp.inf, capsules.dtype)
 
     # Between arms: every capsule pair of every arm pair (i < j).
@@ -120,10 +115,40 @@ def capsule_contacts(scene: Scene, capsules, active) -> Contacts:
     lowest = jnp.minimum(p[2][:, g], q[2][:, g]) - jnp.asarray(radius[g], capsules.dtype)[:, None]
     ground = lowest.min(axis=1, initial=jnp.inf)
 
-    def per_arm(x):  # [A, N] -> [..., A], inactive arms at +inf
-        return jnp.where(act, x, inf).T.reshape(*batch, num_arms)
+    def per_arm(x):  # [A, N] -> [N, A], inactive arms at +inf
+        return jnp.where(act, x, inf).T
 
     return Contacts(between_arms=per_arm(between), self=per_arm(self_dist), ground=per_arm(ground))
+
+
+def capsule_contacts(scene: Scene, capsules, active, chunk: int | None = None) -> Contacts:
+    """Signed distances of posed capsules.
+
+    Args:
+      scene: the padded scene.
+      capsules: [..., max_arms, ncap, 2, 3] world capsule segments (``ArmFrames.capsules``).
+      active: [..., max_arms] bool; inactive slots never collide and never affect others.
+      chunk: scenes checked at a time (a sequential ``lax.map`` over chunks). Default:
+        :data:`CPU_CHUNK` on the CPU backend (2-3x faster at large batches: the working set
+        stays in cache), the whole batch at once elsewhere.
+    """
+    batch = capsules.shape[:-4]
+    num_arms, num_caps = capsules.shape[-4:-2]
+    capsules = capsules.reshape(-1, num_arms, num_caps, 2, 3)
+    active = jnp.reshape(active, (-1, num_arms))
+    n = capsules.shape[0]
+    if chunk is None:
+        chunk = CPU_CHUNK if jax.default_backend() == "cpu" else n
+    if n > chunk:
+        pad = -n % chunk  # padded scenes are inactive
+        capsules = jnp.pad(capsules, ((0, pad), (0, 0), (0, 0), (0, 0), (0, 0)))
+        active = jnp.pad(active, ((0, pad), (0, 0)))
+        chunks = (capsules.reshape(-1, chunk, *capsules.shape[1:]), active.reshape(-1, chunk, num_arms))
+        contacts = jax.lax.map(lambda xs: _flat_contacts(scene, *xs), chunks)
+        contacts = jax.tree.map(lambda x: x.reshape(-1, num_arms)[:n], contacts)
+    else:
+        contacts = _flat_contacts(scene, capsules, active)
+    return jax.tree.map(lambda x: x.reshape(*batch, num_arms), contacts)
 
 
 def scene_contacts(scene: Scene, base_pos, base_quat, joints, active) -> Contacts:

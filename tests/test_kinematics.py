@@ -119,6 +119,7 @@ def test_fk_matches_urdf_on_1000_random_configurations():
             worst_rot = max(worst_rot, _rotation_angle(body_rot[k, b], frames[b][:3, :3]))
         points = [frames[f] @ np.array([*offset, 1.0]) for f, offset in LINK_POINTS]
         worst_point = max(worst_point, np.abs(result.points[k, 0] - np.array(points)[:, :3]).max())
+    print(f"FK vs URDF (1000 configs): ee {worst_pos:.2e} m, points {worst_point:.2e} m, rotation {worst_rot:.2e} rad")
     assert worst_pos < 1e-5, worst_pos
     assert worst_point < 1e-5, worst_point
     assert worst_rot < 1e-4, worst_rot
