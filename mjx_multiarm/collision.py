@@ -129,8 +129,8 @@ def capsule_contacts(scene: Scene, capsules, active, chunk: int | None = None) -
       capsules: [..., max_arms, ncap, 2, 3] world capsule segments (``ArmFrames.capsules``).
       active: [..., max_arms] bool; inactive slots never collide and never affect others.
       chunk: scenes checked at a time (a sequential ``lax.map`` over chunks). Default:
-        :data:`CPU_CHUNK` on the CPU backend (2-3x faster at large batches: the working set
-        stays in cache), the whole batch at once elsewhere.
+        :data:`CPU_CHUNK` for multi-arm scenes on the CPU backend (2-3x faster at large
+        batches: the working set stays in cache), the whole batch at once otherwise.
     """
     batch = capsules.shape[:-4]
     num_arms, num_caps = capsules.shape[-4:-2]
@@ -138,7 +138,7 @@ def capsule_contacts(scene: Scene, capsules, active, chunk: int | None = None) -
     active = jnp.reshape(active, (-1, num_arms))
     n = capsules.shape[0]
     if chunk is None:
-        chunk = CPU_CHUNK if jax.default_backend() == "cpu" else n
+        chunk = CPU_CHUNK if jax.default_backend() == "cpu" and num_arms > 1 else n
     if n > chunk:
         pad = -n % chunk  # padded scenes are inactive
         capsules = jnp.pad(capsules, ((0, pad), (0, 0), (0, 0), (0, 0), (0, 0)))

@@ -7,6 +7,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from conftest import random_padded_scenes
 from mjx_multiarm import evaluate_arms, forward_kinematics, num_substeps, scene_contacts, swept_contacts
@@ -193,3 +195,19 @@ def test_chunked_and_whole_batch_checks_agree():
     chunked = capsule_contacts(scene, capsules, active, chunk=8)  # 7 chunks, the last one padded
     for field in ("between_arms", "self", "ground"):
         np.testing.assert_allclose(getattr(chunked, field), getattr(whole, field), atol=1e-6, err_msg=field)
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.floats(-5, 5), st.floats(-5, 5), st.floats(-np.pi, np.pi), st.integers(0, 2**31 - 1))
+def test_planar_rigid_motion_of_the_whole_scene_changes_nothing(dx, dy, yaw, seed):
+    rng = np.random.default_rng(seed)
+    bases, joints, _ = random_padded_scenes(rng, 4, 4)
+    c, s = np.cos(yaw), np.sin(yaw)
+    moved = bases.copy()
+    moved[..., 0] = c * bases[..., 0] - s * bases[..., 1] + dx
+    moved[..., 1] = s * bases[..., 0] + c * bases[..., 1] + dy
+    moved[..., 2] = bases[..., 2] + yaw
+    a, b = evaluate_arms(bases, joints), evaluate_arms(moved, joints)
+    np.testing.assert_array_equal(a.collided, b.collided)
+    for field in ("distance_between_arms", "distance_self", "distance_ground"):
+        np.testing.assert_allclose(getattr(b, field), getattr(a, field), atol=1e-5, err_msg=field)
