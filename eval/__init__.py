@@ -1,0 +1,1 @@
+"""Evaluation: `python -m eval.benchmark`, paper tables, runtime, latency (issue 7)."""

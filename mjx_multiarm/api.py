@@ -32,7 +32,7 @@ class ArmEvaluation:
       points: [..., n, 10, 3] the 10 observed link points.
       collided: [..., n] bool: the arm touches another arm, itself, or the ground.
       min_distance: [..., n] smallest signed distance (m) over all its checked pairs.
-      distance_between_arms / distance_self / distance_ground: [..., n] per kind.
+      distance_between_arms / distance_within_arm / distance_ground: [..., n] per kind.
     """
 
     ee_pos: np.ndarray
@@ -41,7 +41,7 @@ class ArmEvaluation:
     collided: np.ndarray
     min_distance: np.ndarray
     distance_between_arms: np.ndarray
-    distance_self: np.ndarray
+    distance_within_arm: np.ndarray
     distance_ground: np.ndarray
 
 
@@ -148,6 +148,6 @@ def evaluate_arms(base_poses, joints, active=None, *, max_arms: int | None = Non
         collided=unpad(contacts.collided),
         min_distance=unpad(contacts.min_distance),
         distance_between_arms=unpad(contacts.between_arms),
-        distance_self=unpad(contacts.self),
+        distance_within_arm=unpad(contacts.within_arm),
         distance_ground=unpad(contacts.ground),
     )

@@ -36,12 +36,12 @@ class Contacts:
     """
 
     between_arms: jnp.ndarray
-    self: jnp.ndarray
+    within_arm: jnp.ndarray  # non-adjacent links of the arm itself
     ground: jnp.ndarray
 
     @property
     def min_distance(self) -> jnp.ndarray:
-        return jnp.minimum(jnp.minimum(self.between_arms, self.self), self.ground)
+        return jnp.minimum(jnp.minimum(self.between_arms, self.within_arm), self.ground)
 
     @property
     def collided(self) -> jnp.ndarray:
@@ -118,7 +118,7 @@ def _flat_contacts(scene: Scene, capsules, active) -> Contacts:
     def per_arm(x):  # [A, N] -> [N, A], inactive arms at +inf
         return jnp.where(act, x, inf).T
 
-    return Contacts(between_arms=per_arm(between), self=per_arm(self_dist), ground=per_arm(ground))
+    return Contacts(between_arms=per_arm(between), within_arm=per_arm(self_dist), ground=per_arm(ground))
 
 
 def capsule_contacts(scene: Scene, capsules, active, chunk: int | None = None) -> Contacts:

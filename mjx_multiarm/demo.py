@@ -50,7 +50,7 @@ def make_rollout(scene, steps: int):
             target = jnp.clip(joints + jax.random.uniform(key, joints.shape, minval=-1, maxval=1) * max_step, lower, upper)
             contacts = swept_contacts(scene, base_pos, base_quat, joints, target, active, substeps)
             stopped = contacts.collided[..., None]
-            kinds = jnp.stack([contacts.between_arms < 0, contacts.self < 0, contacts.ground < 0])
+            kinds = jnp.stack([contacts.between_arms < 0, contacts.within_arm < 0, contacts.ground < 0])
             return jnp.where(stopped, joints, target), kinds.sum(axis=(1, 2))
 
         _, counts = jax.lax.scan(step, joints, jax.random.split(rng, steps))

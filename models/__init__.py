@@ -1,0 +1,1 @@
+"""Flax networks: LSTM state encoder, actor, twin critics (issue 6)."""

@@ -81,7 +81,7 @@ def test_signed_distances_match_mj_geom_distance():
     worst = 0.0
     for k in range(len(bases)):
         theirs = _mujoco_distances(scene, data, bases[k], joints[k], active[k])
-        for kind, mine in (("between", ours.between_arms), ("self", ours.self), ("ground", ours.ground)):
+        for kind, mine in (("between", ours.between_arms), ("self", ours.within_arm), ("ground", ours.ground)):
             finite = np.isfinite(theirs[kind])
             np.testing.assert_array_equal(np.isfinite(mine[k]), finite, err_msg=kind)
             np.testing.assert_allclose(mine[k][finite], theirs[kind][finite], atol=1e-4, err_msg=f"scene {k} {kind}")
@@ -116,7 +116,7 @@ def test_two_arms_reaching_into_each_other():
 def test_arm_folded_onto_itself():
     folded = [0.0, -np.pi / 2, 3.1, 0.0, 0.0, 0.0]  # elbow fully bent: forearm onto upper arm
     result = evaluate_arms(np.zeros((1, 3)), np.array([folded]))
-    assert result.collided[0] and result.distance_self[0] < 0
+    assert result.collided[0] and result.distance_within_arm[0] < 0
     assert result.distance_ground[0] > 0 and np.isinf(result.distance_between_arms[0])
 
 
@@ -161,7 +161,7 @@ def test_padding_does_not_change_results():
     big = evaluate_arms(padded_bases, padded_joints, active, max_arms=10)
     np.testing.assert_array_equal(big.collided[:, :3], small.collided)
     # Values agree to float32 rounding (XLA vectorizes the two shapes differently).
-    for field in ("ee_pos", "ee_quat", "points", "min_distance", "distance_between_arms", "distance_self"):
+    for field in ("ee_pos", "ee_quat", "points", "min_distance", "distance_between_arms", "distance_within_arm"):
         np.testing.assert_allclose(getattr(big, field)[:, :3], getattr(small, field), atol=1e-6, err_msg=field)
     assert np.isinf(big.min_distance[:, 3:]).all() and not big.collided[:, 3:].any()
 
@@ -193,7 +193,7 @@ def test_chunked_and_whole_batch_checks_agree():
     capsules = forward_kinematics(scene.arm, pos, quat, jnp.asarray(joints, jnp.float32)).capsules
     whole = capsule_contacts(scene, capsules, active, chunk=50)
     chunked = capsule_contacts(scene, capsules, active, chunk=8)  # 7 chunks, the last one padded
-    for field in ("between_arms", "self", "ground"):
+    for field in ("between_arms", "within_arm", "ground"):
         np.testing.assert_allclose(getattr(chunked, field), getattr(whole, field), atol=1e-6, err_msg=field)
 
 
@@ -209,5 +209,5 @@ def test_planar_rigid_motion_of_the_whole_scene_changes_nothing(dx, dy, yaw, see
     moved[..., 2] = bases[..., 2] + yaw
     a, b = evaluate_arms(bases, joints), evaluate_arms(moved, joints)
     np.testing.assert_array_equal(a.collided, b.collided)
-    for field in ("distance_between_arms", "distance_self", "distance_ground"):
+    for field in ("distance_between_arms", "distance_within_arm", "distance_ground"):
         np.testing.assert_allclose(getattr(b, field), getattr(a, field), atol=1e-5, err_msg=field)

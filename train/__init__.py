@@ -1,0 +1,1 @@
+"""Training: `python -m train.sac`, replay buffer, presets, checkpoints (issue 6)."""
