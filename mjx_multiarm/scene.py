@@ -79,8 +79,11 @@ def build_spec(max_arms: int = 10, arm_xml: str | None = None) -> mujoco.MjSpec:
     return spec
 
 
-def _may_collide(m: mujoco.MjModel, g1: int, g2: int) -> bool:
-    """MuJoCo's broad-phase filter for a geom pair (what ``mj_collision`` would test)."""
+def _may_collide(m: mujoco.MjModel, excluded: set[int], g1: int, g2: int) -> bool:
+    """MuJoCo's broad-phase filter for a geom pair (what ``mj_collision`` would test).
+
+    ``excluded`` holds the model's ``exclude_signature`` values.
+    """
     if not (m.geom_contype[g1] & m.geom_conaffinity[g2] or m.geom_contype[g2] & m.geom_conaffinity[g1]):
         return False
     b1, b2 = m.geom_bodyid[g1], m.geom_bodyid[g2]
@@ -91,22 +94,22 @@ def _may_collide(m: mujoco.MjModel, g1: int, g2: int) -> bool:
     filterparent = not m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_FILTERPARENT
     if filterparent and w1 != 0 and w2 != 0 and (w1 == parent2 or w2 == parent1):
         return False
-    signature = (min(b1, b2) << 16) + max(b1, b2)
-    return signature not in set(m.exclude_signature.tolist())
+    return (min(b1, b2) << 16) + max(b1, b2) not in excluded
 
 
 def _collision_pairs(m: mujoco.MjModel, capsule_geoms: np.ndarray, ground: int) -> CollisionPairs:
     """Read the pair sets off slot 0 (and slot 1 for pairs between arms)."""
+    may_collide = functools.partial(_may_collide, m, set(m.exclude_signature.tolist()))
     ncap = capsule_geoms.shape[1]
     slot0 = capsule_geoms[0]
     between = np.zeros((ncap, ncap), bool)
     if len(capsule_geoms) > 1:
-        between = np.array([[_may_collide(m, a, b) for b in capsule_geoms[1]] for a in slot0])
-    self_pairs = [(a, b) for a in range(ncap) for b in range(a + 1, ncap) if _may_collide(m, slot0[a], slot0[b])]
+        between = np.array([[may_collide(a, b) for b in capsule_geoms[1]] for a in slot0])
+    self_pairs = [(a, b) for a in range(ncap) for b in range(a + 1, ncap) if may_collide(slot0[a], slot0[b])]
     return CollisionPairs(
         between_arms=between,
         self_pairs=np.array(self_pairs, dtype=np.int32).reshape(-1, 2),
-        ground=np.array([c for c in range(ncap) if _may_collide(m, ground, slot0[c])], dtype=np.int32),
+        ground=np.array([c for c in range(ncap) if may_collide(ground, slot0[c])], dtype=np.int32),
     )
 
 
