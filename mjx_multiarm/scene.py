@@ -57,10 +57,6 @@ class Scene:
     qpos_adr: np.ndarray  # [max_arms, 6] qpos address of each slot's joints
 
 
-def _arm_spec(xml_path: str) -> mujoco.MjSpec:
-    return mujoco.MjSpec.from_file(xml_path)
-
-
 def build_spec(max_arms: int = 10, arm_xml: str | None = None) -> mujoco.MjSpec:
     """Compose the padded scene: ground plane, light, and ``max_arms`` arm slots."""
     if not 1 <= max_arms <= 64:
@@ -73,7 +69,8 @@ def build_spec(max_arms: int = 10, arm_xml: str | None = None) -> mujoco.MjSpec:
     spec.worldbody.add_light(pos=[0, 0, 4], dir=[0, 0, -1], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
     exempt = load_arm(arm_xml).ground_exempt_bodies
     for i in range(max_arms):
-        spec.attach(_arm_spec(str(arm_xml or ARM_XML)), prefix=f"arm{i}/", frame=spec.worldbody.add_frame())
+        arm = mujoco.MjSpec.from_file(str(arm_xml or ARM_XML))  # a fresh copy per slot
+        spec.attach(arm, prefix=f"arm{i}/", frame=spec.worldbody.add_frame())
         for body in exempt:  # bodies that stand on or cannot reach the ground
             spec.add_exclude(bodyname1="world", bodyname2=f"arm{i}/{body}")
     return spec
