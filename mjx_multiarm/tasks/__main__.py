@@ -1,0 +1,189 @@
+"""Command-line tools for task datasets.
+
+    python -m mjx_multiarm.tasks generate --arms 1-4 --count 1000 --mode static --seed 0 --out tasks.npz
+    python -m mjx_multiarm.tasks generate --preset test --out test.npz
+    python -m mjx_multiarm.tasks info tasks.npz [--json]
+    python -m mjx_multiarm.tasks import-json DIR --out tasks.npz [--json]
+    python -m mjx_multiarm.tasks export-json tasks.npz --out DIR
+
+``generate`` is resumable: finished chunks are kept in ``OUT.partial/``; re-running the
+same command after an interruption continues where it stopped and writes the same file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import shutil
+import sys
+import time
+
+import numpy as np
+
+from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
+from mjx_multiarm.tasks.generate import CHUNK_SIZE, MODES, GenerationSpec, generate_chunk
+from mjx_multiarm.tasks.original_json import export_tasks, import_tasks
+from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_of, concatenate
+
+#: Named presets: (count, team sizes, mode, seed). The paper's train and test sets, and
+#: small ones for the default CPU run and the tests.
+PRESETS = {
+    "train": GenerationSpec(count=1_000_000, arm_counts=(1, 2, 3, 4), mode="static", seed=0),
+    "test": GenerationSpec(count=30_000, arm_counts=tuple(range(1, 11)), mode="dynamic", seed=1),
+    "small": GenerationSpec(count=1_000, arm_counts=(1, 2, 3, 4), mode="static", seed=2),
+    "tiny": GenerationSpec(count=40, arm_counts=(1, 2, 3, 4), mode="static", seed=3),
+}
+
+
+def parse_arms(text: str) -> tuple[int, ...]:
+    """'1-4' -> (1, 2, 3, 4); '2,5' -> (2, 5)."""
+    counts: list[int] = []
+    try:
+        for part in text.split(","):
+            low, _, high = part.partition("-")
+            counts += range(int(low), int(high or low) + 1)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--arms: expected a range like 1-4 or a list like 2,5; got {text!r}") from None
+    if not counts or min(counts) < 1:
+        raise argparse.ArgumentTypeError(f"--arms: team sizes must be >= 1; got {text!r}")
+    return tuple(counts)
+
+
+class Progress:
+    """A one-line progress bar on stderr: done/total, rate, ETA."""
+
+    def __init__(self, total: int, unit: str):
+        self.total, self.unit, self.start, self.done = total, unit, time.perf_counter(), 0
+
+    def update(self, done: int, new: int) -> None:
+        self.done = done
+        elapsed = time.perf_counter() - self.start
+        rate = new / elapsed if elapsed > 0 and new else 0.0
+        eta = (self.total - done) / rate if rate else float("nan")
+        bar = "#" * int(30 * done / self.total)
+        print(f"\r[{bar:<30}] {done}/{self.total} {self.unit} {rate:,.0f}/s ETA {eta:,.0f}s ", end="", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        print(file=sys.stderr)
+
+
+def _spec_record(spec: GenerationSpec) -> dict:
+    return {**dataclasses.asdict(spec), "arm_counts": list(spec.arm_counts), "chunk_size": CHUNK_SIZE}
+
+
+def generate(spec: GenerationSpec, out: pathlib.Path, quiet: bool = False) -> Tasks:
+    """Generate ``spec`` into ``out`` (resumable through ``out.partial/``); returns the tasks."""
+    partial = out.with_name(out.name + ".partial")
+    partial.mkdir(parents=True, exist_ok=True)
+    record = _spec_record(spec)
+    spec_file = partial / "spec.json"
+    if spec_file.exists() and json.loads(spec_file.read_text()) != record:
+        raise ValueError(f"{partial}: holds a generation with other arguments; delete it or use another --out")
+    spec_file.write_text(json.dumps(record, sort_keys=True))
+    chunk_path = [partial / f"chunk_{c:06d}.npz" for c in range(spec.num_chunks)]
+    progress = None if quiet else Progress(spec.count, "tasks")
+    done = sum(min(CHUNK_SIZE, spec.count - c * CHUNK_SIZE) for c, p in enumerate(chunk_path) if p.exists())
+    resumed = done
+    for c, path in enumerate(chunk_path):
+        if path.exists():
+            continue
+        tasks = generate_chunk(spec, c)
+        save_tasks(path, tasks)
+        done += tasks.num_tasks
+        if progress:
+            progress.update(done, done - resumed)
+    if progress:
+        progress.close()
+    tasks = concatenate([load_tasks(p)[0] for p in chunk_path])
+    save_tasks(out, tasks, {"generator": record})
+    shutil.rmtree(partial)
+    return tasks
+
+
+def summarize(tasks: Tasks) -> dict:
+    """Counts per team size, per difficulty bin (all tasks) and speed bin (dynamic-capable tasks)."""
+    arms = tasks.num_arms
+    summary = {"count": int(tasks.num_tasks), "max_arms": int(tasks.max_arms), "by_team_size": {}}
+    for team in sorted(set(arms.tolist())):
+        rows = arms == team
+        by_difficulty = {name: 0 for name in DIFFICULTY_BINS} | {"outside": 0}
+        for value in tasks.difficulty[rows]:
+            by_difficulty[bin_of(float(value), DIFFICULTY_BINS) or "outside"] += 1
+        by_speed = {name: 0 for name in SPEED_BINS}
+        for value in tasks.speed[rows & tasks.has_dynamic_mode]:
+            by_speed[bin_of(float(value), SPEED_BINS)] += 1
+        summary["by_team_size"][str(team)] = {"count": int(rows.sum()), "difficulty": by_difficulty, "speed": by_speed}
+    return summary
+
+
+def _print_summary(summary: dict) -> None:
+    d_names, s_names = list(DIFFICULTY_BINS) + ["outside"], list(SPEED_BINS)
+    print(f"{summary['count']} tasks, {summary['max_arms']} slots")
+    print(f"{'arms':>4} {'count':>7} " + " ".join(f"{n:>7}" for n in d_names) + " | " + " ".join(f"{n:>7}" for n in s_names))
+    for team, row in summary["by_team_size"].items():
+        cells = " ".join(f"{row['difficulty'][n]:>7}" for n in d_names)
+        speeds = " ".join(f"{row['speed'][n]:>7}" for n in s_names)
+        print(f"{team:>4} {row['count']:>7} {cells} | {speeds}")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m mjx_multiarm.tasks", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="command", required=True)
+    gen = commands.add_parser("generate", help="generate a task dataset (resumable)")
+    gen.add_argument("--preset", choices=sorted(PRESETS), help="named dataset; other flags override its fields")
+    gen.add_argument("--arms", type=parse_arms, help="team sizes, e.g. 1-4 or 2,5")
+    gen.add_argument("--count", type=int, help="number of tasks")
+    gen.add_argument("--mode", choices=MODES, help="static, or dynamic (tasks usable in both modes)")
+    gen.add_argument("--seed", type=int)
+    gen.add_argument("--max-arms", type=int, help="arm slots (default: the largest team)")
+    gen.add_argument("--out", type=pathlib.Path, required=True)
+    gen.add_argument("--quiet", action="store_true", help="no progress bar")
+    info = commands.add_parser("info", help="counts per team size and difficulty/speed bin")
+    info.add_argument("path", type=pathlib.Path)
+    info.add_argument("--json", action="store_true", help="end with one JSON line")
+    imp = commands.add_parser("import-json", help="convert a folder of original per-task JSON files")
+    imp.add_argument("source", type=pathlib.Path)
+    imp.add_argument("--out", type=pathlib.Path, required=True)
+    imp.add_argument("--max-arms", type=int)
+    imp.add_argument("--json", action="store_true", help="end with one JSON line (the import report)")
+    exp = commands.add_parser("export-json", help="write a dataset as original per-task JSON files")
+    exp.add_argument("path", type=pathlib.Path)
+    exp.add_argument("--out", type=pathlib.Path, required=True)
+    args = parser.parse_args(argv)
+
+    try:
+        if args.command == "generate":
+            base = PRESETS[args.preset] if args.preset else None
+            if base is None and (args.arms is None or args.count is None):
+                parser.error("generate: give --preset, or --arms and --count")
+            fields = {"arm_counts": args.arms, "count": args.count, "mode": args.mode, "seed": args.seed, "max_arms": args.max_arms}
+            overrides = {k: v for k, v in fields.items() if v is not None}
+            spec = dataclasses.replace(base, **overrides) if base else GenerationSpec(**overrides)
+            tasks = generate(spec, args.out, args.quiet)
+            print(f"wrote {tasks.num_tasks} tasks to {args.out}")
+        elif args.command == "info":
+            summary = summarize(load_tasks(args.path)[0])
+            _print_summary(summary)
+            if args.json:
+                print(json.dumps(summary))
+        elif args.command == "import-json":
+            tasks, report = import_tasks(args.source, args.max_arms)
+            save_tasks(args.out, tasks, {"imported_from": str(args.source)})
+            print(f"imported {report.count} tasks ({report.arms_total} arms) to {args.out}")
+            print(f"FK of goal_config vs target_eff_poses: {report.max_fk_position_error_m:.2e} m, "
+                  f"{report.max_fk_rotation_error_rad:.2e} rad; difficulty recomputed: max difference {report.max_difficulty_error:.4f}")
+            if args.json:
+                fields = ("count", "arms_total", "max_fk_position_error_m", "max_fk_rotation_error_rad", "max_difficulty_error")
+                print(json.dumps({name: float(getattr(report, name)) if "max" in name else int(getattr(report, name)) for name in fields}))
+        else:
+            paths = export_tasks(load_tasks(args.path)[0], args.out)
+            print(f"wrote {len(paths)} JSON files to {args.out}")
+    except (ValueError, FileNotFoundError) as error:
+        sys.exit(f"error: {error}")
+
+
+if __name__ == "__main__":
+    main()

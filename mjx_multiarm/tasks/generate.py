@@ -1,0 +1,237 @@
+"""Task generation (paper section 4.1): vectorized, seeded, deterministic.
+
+For each task of k arms: sample k planar base poses (random yaw, no two bases closer than
+``MIN_BASE_SPACING``), stratified so that every difficulty bin is populated (layouts are
+drawn until the task's difficulty falls in its assigned bin; tasks harder than 0.5, beyond
+the paper's last bin, are rejected); then three collision-free composite configurations,
+each from batched damped-least-squares IK toward random end-effector positions inside each
+arm's workspace hemisphere, pulled toward the home configuration. Arms whose IK fails,
+leaves the joint limits, or collides are resampled; a task stuck for ``MAX_ROUNDS`` rounds
+gets a new layout.
+
+Tasks are made in chunks; chunk ``c`` depends only on (seed, c, arguments), so any chunk can
+be regenerated identically (resumable generation). Within a chunk, team sizes cycle
+through ``arm_counts`` and difficulty (and speed) bins cycle evenly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mjx_multiarm.collision import scene_contacts
+from mjx_multiarm.ik import solve_positions
+from mjx_multiarm.kinematics import forward_kinematics
+from mjx_multiarm.robot import REACH
+from mjx_multiarm.scene import Scene, build_scene
+from mjx_multiarm.tasks.difficulty import task_difficulty
+from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks
+from mjx_multiarm.transforms import yaw_quat
+
+MIN_BASE_SPACING = 0.3  # m
+#: Per difficulty bin, the spacing scales of candidate layouts (m): the ranges where 1-10
+#: arm layouts of that bin were found (measured), to raise the acceptance rate.
+LAYOUT_SPACING = {"easy": (0.75, 1.9), "medium": (0.55, 1.35), "hard": (0.5, 1.3)}
+IK_TOLERANCE = 1e-3  # m
+IK_ITERATIONS = 30
+INITIAL_NOISE = 0.3  # rad, spread of IK starting points around home
+MAX_ROUNDS = 30
+CHUNK_SIZE = 256
+LAYOUT_BATCH = 512  # candidate layouts per draw (a fixed shape: one compile)
+PROPOSALS = 16  # placement attempts per arm in a candidate layout
+MODES = ("static", "dynamic")
+
+
+@dataclasses.dataclass(frozen=True)
+class GenerationSpec:
+    """What to generate: ``count`` tasks with team sizes cycling through ``arm_counts``."""
+
+    count: int
+    arm_counts: tuple[int, ...]
+    mode: str = "static"
+    seed: int = 0
+    max_arms: int | None = None
+
+    def __post_init__(self):
+        if self.count < 1:
+            raise ValueError(f"count must be >= 1, got {self.count}")
+        if not self.arm_counts or min(self.arm_counts) < 1:
+            raise ValueError(f"arm_counts must be positive team sizes, got {self.arm_counts}")
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.max_arms is not None and self.max_arms < max(self.arm_counts):
+            raise ValueError(f"max_arms={self.max_arms} is smaller than the largest team {max(self.arm_counts)}")
+
+    @property
+    def slots(self) -> int:
+        return self.max_arms or max(self.arm_counts)
+
+    @property
+    def num_chunks(self) -> int:
+        return -(-self.count // CHUNK_SIZE)
+
+
+def _assignments(spec: GenerationSpec, start: int, stop: int):
+    """Team size, difficulty bin and speed bin of global task indices [start, stop)."""
+    index = np.arange(start, stop)
+    teams = np.asarray(spec.arm_counts)[index % len(spec.arm_counts)]
+    cycle = index // len(spec.arm_counts)
+    difficulty_bins = np.where(teams == 1, 0, cycle % len(DIFFICULTY_BINS))
+    speed_bins = (cycle // len(DIFFICULTY_BINS)) % len(SPEED_BINS)
+    return index, teams, difficulty_bins, speed_bins
+
+
+def _sample_layouts(rng: np.random.Generator, num_arms: int, spacing: tuple[float, float], count: int):
+    """[count, num_arms, 2] candidate base positions and their validity.
+
+    Each layout has a spacing scale s; arm i is placed about s from a random earlier arm,
+    trying ``PROPOSALS`` directions for one that keeps at least ``max(0.3, 0.75 s)`` from
+    every earlier base (so s controls how tightly the workspaces overlap).
+    """
+    scale = rng.uniform(*spacing, count)
+    keep_out = np.maximum(MIN_BASE_SPACING, 0.75 * scale)
+    xy = np.zeros((count, num_arms, 2))
+    valid = np.ones(count, bool)
+    rows = np.arange(count)
+    for i in range(1, num_arms):
+        anchor = xy[rows[:, None], rng.integers(0, i, (count, PROPOSALS))]  # [count, T, 2]
+        angle = rng.uniform(-np.pi, np.pi, (count, PROPOSALS))
+        dist = scale[:, None] * rng.uniform(0.9, 1.2, (count, PROPOSALS))
+        proposal = anchor + dist[..., None] * np.stack([np.cos(angle), np.sin(angle)], -1)
+        gap = np.linalg.norm(proposal[:, :, None] - xy[:, None, :i], axis=-1).min(axis=-1)  # [count, T]
+        fits = gap >= keep_out[:, None]
+        first = np.argmax(fits, axis=1)
+        xy[:, i] = proposal[rows, first]
+        valid &= fits[rows, first]
+    return xy - xy.mean(axis=1, keepdims=True), valid, scale
+
+
+def sample_bases(rng: np.random.Generator, teams, bins, slots: int):
+    """Planar base positions [n, slots, 3], yaws [n, slots] and difficulty [n] per task.
+
+    Candidate layouts are drawn until each task's difficulty lies in its bin; after a draw
+    the spacing range narrows to the scales that produced accepted layouts (plus a margin).
+    """
+    n = len(teams)
+    base_pos = np.zeros((n, slots, 3))
+    difficulty = np.zeros(n)
+    bin_names = list(DIFFICULTY_BINS)
+    for team, b in sorted(set(zip(teams.tolist(), bins.tolist()))):
+        todo = np.flatnonzero((teams == team) & (bins == b))
+        lower, upper = DIFFICULTY_BINS[bin_names[b]]
+        spacing = LAYOUT_SPACING[bin_names[b]]
+        while len(todo):
+            xy, valid, scale = _sample_layouts(rng, team, spacing, LAYOUT_BATCH)
+            found = task_difficulty(xy, np.ones(xy.shape[:2], bool)) if team > 1 else np.zeros(len(xy))
+            last = b == len(bin_names) - 1
+            ok = valid & (found >= lower) & ((found < upper) | (last & (found <= upper)))
+            if ok.sum() >= 5:
+                spacing = (scale[ok].min() - 0.05, scale[ok].max() + 0.05)
+            take = np.flatnonzero(ok)[: len(todo)]
+            base_pos[todo[: len(take)], :team, :2] = xy[take]
+            difficulty[todo[: len(take)]] = found[take]
+            todo = todo[len(take) :]
+    yaw = rng.uniform(-np.pi, np.pi, (n, slots))
+    return base_pos, yaw, difficulty
+
+
+def _hemisphere_targets(rng: np.random.Generator, shape) -> np.ndarray:
+    """Uniform random points [*shape, 3] in the workspace hemisphere (base frame)."""
+    direction = rng.normal(size=(*shape, 3))
+    direction[..., 2] = np.abs(direction[..., 2])
+    direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
+    return direction * REACH * rng.uniform(size=(*shape, 1)) ** (1 / 3)
+
+
+@functools.cache
+def _kernels(scene: Scene):
+    """Jitted IK and composite collision check for one scene."""
+    arm = scene.arm
+
+    @jax.jit
+    def ik(targets, initial):
+        joints, error = solve_positions(arm, targets, initial, iterations=IK_ITERATIONS)
+        lower, upper = (jnp.asarray(arm.joint_range[:, i], joints.dtype) for i in (0, 1))
+        within = jnp.all((joints >= lower) & (joints <= upper), axis=-1)
+        return joints, (error < IK_TOLERANCE) & within
+
+    @jax.jit
+    def collided(base_pos, base_quat, joints, active):
+        return scene_contacts(scene, base_pos, base_quat, joints, active).collided
+
+    return ik, collided
+
+
+def sample_configurations(rng: np.random.Generator, scene: Scene, base_pos, base_quat, active):
+    """One collision-free composite configuration per task: (joints [n, A, 6], ok [n])."""
+    ik, collided = _kernels(scene)
+    arm = scene.arm
+    joints = np.broadcast_to(arm.home, (*active.shape, 6)).copy()
+    accepted = ~active
+    for _ in range(MAX_ROUNDS):
+        pending = ~accepted
+        if not pending.any():
+            break
+        targets = _hemisphere_targets(rng, active.shape)
+        initial = arm.home + rng.normal(0.0, INITIAL_NOISE, (*active.shape, 6))
+        solved, ok = ik(jnp.asarray(targets, jnp.float32), jnp.asarray(initial, jnp.float32))
+        tentative = pending & np.asarray(ok)
+        trial = np.where(tentative[..., None], np.asarray(solved, np.float64), joints)
+        hit = np.asarray(collided(base_pos, base_quat, jnp.asarray(trial, jnp.float32), active & (accepted | tentative)))
+        keep = tentative & ~hit
+        joints[keep] = trial[keep]
+        accepted |= keep
+    return joints, accepted.all(axis=-1)
+
+
+def generate_chunk(spec: GenerationSpec, chunk: int) -> Tasks:
+    """Tasks [chunk * CHUNK_SIZE, ...) of ``spec``, identical whenever regenerated."""
+    start, stop = chunk * CHUNK_SIZE, min((chunk + 1) * CHUNK_SIZE, spec.count)
+    rng = np.random.default_rng([spec.seed, chunk])
+    index, teams, difficulty_bins, speed_bins = _assignments(spec, start, stop)
+    scene = build_scene(spec.slots)
+    n, slots = len(index), spec.slots
+    active = np.arange(slots) < teams[:, None]
+    base_pos, base_quat = np.zeros((n, slots, 3)), np.zeros((n, slots, 4))
+    difficulty, configs = np.zeros(n), np.zeros((3, n, slots, 6))
+    todo = np.ones(n, bool)
+    while todo.any():  # tasks whose configurations got stuck start over with a new layout
+        pos, yaw, diff = sample_bases(rng, teams[todo], difficulty_bins[todo], slots)
+        quat = np.asarray(yaw_quat(yaw), np.float64)
+        ok = np.ones(todo.sum(), bool)
+        found = []
+        for _ in range(3 if spec.mode == "dynamic" else 2):
+            joints, done = sample_configurations(rng, scene, pos, quat, active[todo])
+            found.append(joints)
+            ok &= done
+        rows = np.flatnonzero(todo)[ok]
+        base_pos[rows], base_quat[rows], difficulty[rows] = pos[ok], quat[ok], diff[ok]
+        for c, joints in enumerate(found):
+            configs[c, rows] = joints[ok]
+        todo[rows] = False
+    if spec.mode == "static":
+        configs[2] = configs[1]
+    frames = forward_kinematics(scene.arm, base_pos, base_quat, jnp.asarray(configs[1]))
+    speed = np.zeros(n)
+    if spec.mode == "dynamic":
+        bounds = np.array(list(SPEED_BINS.values()))[speed_bins]
+        speed = rng.uniform(bounds[:, 0], bounds[:, 1])
+    identity = np.array([1.0, 0.0, 0.0, 0.0])
+    pad = ~active[..., None]
+    return Tasks(
+        task_id=(spec.seed % 2**31) * 2**32 + index,
+        active=active,
+        base_pos=np.where(pad, 0.0, base_pos),
+        base_quat=np.where(pad, identity, base_quat),
+        start_joints=np.where(pad, 0.0, configs[0]),
+        goal_joints=np.where(pad, 0.0, configs[1]),
+        dynamic_start_joints=np.where(pad, 0.0, configs[2]),
+        target_pos=np.where(pad, 0.0, np.asarray(frames.ee_pos, np.float64)),
+        target_quat=np.where(pad, identity, np.asarray(frames.ee_quat, np.float64)),
+        difficulty=difficulty,
+        speed=speed,
+    )
