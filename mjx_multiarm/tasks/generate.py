@@ -55,6 +55,7 @@ class GenerationSpec:
     mode: str = "static"
     seed: int = 0
     max_arms: int | None = None
+    chunk_size: int = CHUNK_SIZE
 
     def __post_init__(self):
         if self.count < 1:
@@ -72,7 +73,11 @@ class GenerationSpec:
 
     @property
     def num_chunks(self) -> int:
-        return -(-self.count // CHUNK_SIZE)
+        return -(-self.count // self.chunk_size)
+
+    def chunk_bounds(self, chunk: int) -> tuple[int, int]:
+        """Global task indices [start, stop) of ``chunk``."""
+        return chunk * self.chunk_size, min((chunk + 1) * self.chunk_size, self.count)
 
 
 def _assignments(spec: GenerationSpec, start: int, stop: int):
@@ -189,8 +194,8 @@ def sample_configurations(rng: np.random.Generator, scene: Scene, base_pos, base
 
 
 def generate_chunk(spec: GenerationSpec, chunk: int) -> Tasks:
-    """Tasks [chunk * CHUNK_SIZE, ...) of ``spec``, identical whenever regenerated."""
-    start, stop = chunk * CHUNK_SIZE, min((chunk + 1) * CHUNK_SIZE, spec.count)
+    """The tasks of chunk number ``chunk`` of ``spec``, identical whenever regenerated."""
+    start, stop = spec.chunk_bounds(chunk)
     rng = np.random.default_rng([spec.seed, chunk])
     index, teams, difficulty_bins, speed_bins = _assignments(spec, start, stop)
     scene = build_scene(spec.slots)

@@ -1,0 +1,184 @@
+"""Task generation, difficulty, datasets and the task CLI."""
+
+from __future__ import annotations
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mjx_multiarm import scene_contacts
+from mjx_multiarm.ik import solve_positions
+from mjx_multiarm.kinematics import forward_kinematics
+from mjx_multiarm.robot import REACH, load_arm
+from mjx_multiarm.scene import build_scene
+from mjx_multiarm.tasks import __main__ as cli
+from mjx_multiarm.tasks import load_tasks, save_tasks, task_difficulty
+from mjx_multiarm.tasks.generate import MIN_BASE_SPACING, GenerationSpec, generate_chunk
+from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, bin_of, take
+
+
+@pytest.fixture(scope="module")
+def generated():
+    """256 dynamic-capable tasks of 1-10 arms in 10 slots (one chunk)."""
+    spec = GenerationSpec(count=256, arm_counts=tuple(range(1, 11)), mode="dynamic", seed=7)
+    return generate_chunk(spec, 0)
+
+
+def test_generated_tasks_are_valid(generated):
+    tasks, arm, scene = generated, load_arm(), build_scene(10)
+    active = tasks.active
+    assert sorted(set(tasks.num_arms.tolist())) == list(range(1, 11))
+    for field in ("start_joints", "goal_joints", "dynamic_start_joints"):
+        joints = getattr(tasks, field)
+        contacts = scene_contacts(scene, tasks.base_pos, tasks.base_quat, jnp.asarray(joints, jnp.float32), active)
+        assert not np.asarray(contacts.collided).any(), field
+        within = (joints >= arm.joint_range[:, 0]) & (joints <= arm.joint_range[:, 1])
+        assert within[active].all(), field
+    frames = forward_kinematics(arm, tasks.base_pos, tasks.base_quat, jnp.asarray(tasks.goal_joints))
+    assert np.abs(np.asarray(frames.ee_pos) - tasks.target_pos)[active].max() < 1e-5
+    quat = np.asarray(frames.ee_quat)
+    sign_free = np.minimum(np.abs(quat - tasks.target_quat).max(-1), np.abs(quat + tasks.target_quat).max(-1))
+    assert sign_free[active].max() < 1e-6
+    gaps = np.linalg.norm(tasks.base_pos[:, :, None] - tasks.base_pos[:, None], axis=-1)
+    both = active[:, :, None] & active[:, None] & ~np.eye(10, dtype=bool)
+    assert gaps[both].min() >= MIN_BASE_SPACING
+    np.testing.assert_allclose(task_difficulty(tasks.base_pos, active), tasks.difficulty, atol=1e-6)
+    assert all(bin_of(d, DIFFICULTY_BINS) for d in tasks.difficulty)
+    assert all(bin_of(v, SPEED_BINS) for v in tasks.speed)
+    assert (tasks.difficulty[tasks.num_arms == 1] == 0).all()
+    assert np.abs(tasks.base_pos[..., 2]).max() == 0 and not tasks.base_pos[~active].any()
+
+
+def test_every_bin_is_populated_for_teams(generated):
+    summary = cli.summarize(generated)
+    for team in range(2, 11):
+        row = summary["by_team_size"][str(team)]
+        assert all(row["difficulty"][name] > 0 for name in DIFFICULTY_BINS), (team, row)
+        assert row["difficulty"]["outside"] == 0
+
+
+def test_generation_is_deterministic_and_resumable(tmp_path, monkeypatch):
+    spec = GenerationSpec(count=12, arm_counts=(1, 2, 3), mode="static", seed=11, chunk_size=5)
+    reference = cli.generate(spec, tmp_path / "straight.npz", quiet=True)
+
+    calls = []
+
+    def interrupted(spec, chunk):  # generate() runs chunks inline with one worker
+        if len(calls) == 1:
+            raise KeyboardInterrupt  # killed while making the second chunk
+        calls.append(chunk)
+        return generate_chunk(spec, chunk)
+
+    out = tmp_path / "resumed.npz"
+    monkeypatch.setattr(cli, "generate_chunk", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        cli.generate(spec, out, quiet=True)
+    assert not out.exists() and len(list((tmp_path / "resumed.npz.partial").glob("chunk_*.npz"))) == 1
+    monkeypatch.setattr(cli, "generate_chunk", generate_chunk)
+    resumed = cli.generate(spec, out, quiet=True)
+    for name in ("task_id", "base_pos", "start_joints", "goal_joints", "target_quat", "difficulty"):
+        np.testing.assert_array_equal(getattr(resumed, name), getattr(reference, name), err_msg=name)
+    assert not (tmp_path / "resumed.npz.partial").exists()
+    other = GenerationSpec(count=12, arm_counts=(1, 2, 3), mode="static", seed=12, chunk_size=5)
+    (tmp_path / "x.npz.partial").mkdir()
+    (tmp_path / "x.npz.partial" / "spec.json").write_text(json.dumps(cli._spec_record(spec)))
+    with pytest.raises(ValueError, match="other arguments"):
+        cli.generate(other, tmp_path / "x.npz", quiet=True)
+
+
+def test_cli_info_and_json_round_trip(tmp_path, capsys, generated):
+    path = tmp_path / "tasks.npz"
+    save_tasks(path, take(generated, np.arange(20)))
+    cli.main(["info", str(path), "--json"])
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["count"] == 20 and sum(r["count"] for r in summary["by_team_size"].values()) == 20
+    cli.main(["export-json", str(path), "--out", str(tmp_path / "json")])
+    cli.main(["import-json", str(tmp_path / "json"), "--out", str(tmp_path / "back.npz"), "--max-arms", "10", "--json"])
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["count"] == 20 and report["max_fk_position_error_m"] < 1e-5 and report["max_difficulty_error"] < 1e-9
+    back, _ = load_tasks(tmp_path / "back.npz")
+    np.testing.assert_array_equal(back.goal_joints, take(generated, np.arange(20)).goal_joints)
+
+
+# --- difficulty ---------------------------------------------------------------------------
+
+
+def _two_arms(distance):
+    return np.array([[0.0, 0.0, 0.0], [distance, 0.0, 0.0]]), np.ones(2, bool)
+
+
+def test_difficulty_analytic_cases():
+    assert task_difficulty(np.zeros((1, 3)), np.ones(1, bool)) == 0.0
+    for distance in (1.7, 2.5):
+        assert task_difficulty(*_two_arms(distance)) == 0.0
+    assert task_difficulty(*_two_arms(0.01)) > 0.98
+    for distance in np.linspace(0.05, 1.65, 9):  # two equal balls: exact lens volume
+        x = distance / REACH
+        exact = (4 + x) * (2 - x) ** 2 / 16
+        assert abs(task_difficulty(*_two_arms(distance)) - exact) < 0.003, distance
+
+
+def test_difficulty_matches_independent_monte_carlo():
+    rng = np.random.default_rng(0)
+    for team in (3, 5, 8):
+        bases = np.zeros((team, 3))
+        bases[:, :2] = rng.uniform(-0.8, 0.8, (team, 2))
+        samples = rng.normal(size=(200_000, 3))
+        samples[:, 2] = np.abs(samples[:, 2])
+        samples *= REACH * rng.uniform(size=(200_000, 1)) ** (1 / 3) / np.linalg.norm(samples, axis=1, keepdims=True)
+        fractions = []
+        for i in range(team):
+            points = bases[i] + samples
+            others = np.delete(bases, i, axis=0)
+            inside = (np.linalg.norm(points[:, None] - others[None], axis=-1) <= REACH).any(axis=1)
+            fractions.append(inside.mean())
+        assert abs(task_difficulty(bases, np.ones(team, bool)) - max(fractions)) < 0.01, team
+
+
+def test_difficulty_ignores_padding():
+    bases = np.array([[0.0, 0.0, 0.0], [0.6, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    assert task_difficulty(bases, np.array([True, True, False])) == task_difficulty(bases[:2], np.ones(2, bool))
+
+
+# --- IK -----------------------------------------------------------------------------------
+
+
+def test_ik_reaches_reachable_targets():
+    rng = np.random.default_rng(1)
+    arm = load_arm()
+    truth = arm.home + rng.normal(0, 0.8, (256, 6))
+    targets = forward_kinematics(arm, jnp.zeros(3), jnp.array([1.0, 0, 0, 0]), jnp.asarray(truth, jnp.float32)).ee_pos
+    initial = arm.home + rng.normal(0, 0.3, (256, 6))
+    _, error = solve_positions(arm, targets, jnp.asarray(initial, jnp.float32))
+    assert (np.asarray(error) < 1e-3).mean() > 0.95
+
+
+# --- dataset files ------------------------------------------------------------------------
+
+
+def test_dataset_round_trip_and_corruption(tmp_path, generated):
+    tasks = take(generated, np.arange(10))
+    path = tmp_path / "d.npz"
+    save_tasks(path, tasks, {"note": "x"})
+    loaded, metadata = load_tasks(path)
+    assert metadata == {"note": "x"}
+    for name in ("task_id", "active", "base_quat", "dynamic_start_joints", "speed"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(tasks, name))
+    path.write_bytes(path.read_bytes()[:200])
+    with pytest.raises(ValueError, match="d.npz: unreadable or corrupt"):
+        load_tasks(path)
+    with pytest.raises(FileNotFoundError, match="missing.npz"):
+        load_tasks(tmp_path / "missing.npz")
+    np.savez(tmp_path / "old.npz", schema_version=np.array(0))
+    with pytest.raises(ValueError, match="schema version 0"):
+        load_tasks(tmp_path / "old.npz")
+
+
+def test_invalid_tasks_are_never_written(tmp_path, generated):
+    bad = take(generated, np.arange(3))
+    bad = bad.replace(start_joints=np.where(bad.active[..., None], np.nan, bad.start_joints))
+    with pytest.raises(ValueError, match="field 'start_joints' has a non-finite value"):
+        save_tasks(tmp_path / "bad.npz", bad)
+    assert not list(tmp_path.iterdir())
