@@ -15,7 +15,8 @@ from mjx_multiarm.robot import REACH, load_arm
 from mjx_multiarm.scene import build_scene
 from mjx_multiarm.tasks import __main__ as cli
 from mjx_multiarm.tasks import load_tasks, save_tasks, task_difficulty
-from mjx_multiarm.tasks.generate import MIN_BASE_SPACING, GenerationSpec, generate_chunk
+from mjx_multiarm.tasks import generate as generation
+from mjx_multiarm.tasks.generate import MIN_BASE_SPACING, GenerationSpec, generate_chunk, generate_dataset, spec_record
 from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, bin_of, take
 
 
@@ -61,31 +62,31 @@ def test_every_bin_is_populated_for_teams(generated):
 
 def test_generation_is_deterministic_and_resumable(tmp_path, monkeypatch):
     spec = GenerationSpec(count=12, arm_counts=(1, 2, 3), mode="static", seed=11, chunk_size=5)
-    reference = cli.generate(spec, tmp_path / "straight.npz", quiet=True)
+    reference = generate_dataset(spec, tmp_path / "straight.npz")
 
     calls = []
 
-    def interrupted(spec, chunk):  # generate() runs chunks inline with one worker
+    def interrupted(spec, chunk):  # one worker: chunks are made in this process
         if len(calls) == 1:
             raise KeyboardInterrupt  # killed while making the second chunk
         calls.append(chunk)
         return generate_chunk(spec, chunk)
 
     out = tmp_path / "resumed.npz"
-    monkeypatch.setattr(cli, "generate_chunk", interrupted)
+    monkeypatch.setattr(generation, "generate_chunk", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        cli.generate(spec, out, quiet=True)
+        generate_dataset(spec, out)
     assert not out.exists() and len(list((tmp_path / "resumed.npz.partial").glob("chunk_*.npz"))) == 1
-    monkeypatch.setattr(cli, "generate_chunk", generate_chunk)
-    resumed = cli.generate(spec, out, quiet=True)
+    monkeypatch.setattr(generation, "generate_chunk", generate_chunk)
+    resumed = generate_dataset(spec, out)
     for name in ("task_id", "base_pos", "start_joints", "goal_joints", "target_quat", "difficulty"):
         np.testing.assert_array_equal(getattr(resumed, name), getattr(reference, name), err_msg=name)
     assert not (tmp_path / "resumed.npz.partial").exists()
     other = GenerationSpec(count=12, arm_counts=(1, 2, 3), mode="static", seed=12, chunk_size=5)
     (tmp_path / "x.npz.partial").mkdir()
-    (tmp_path / "x.npz.partial" / "spec.json").write_text(json.dumps(cli._spec_record(spec)))
+    (tmp_path / "x.npz.partial" / "spec.json").write_text(json.dumps(spec_record(spec)))
     with pytest.raises(ValueError, match="other arguments"):
-        cli.generate(other, tmp_path / "x.npz", quiet=True)
+        generate_dataset(other, tmp_path / "x.npz")
 
 
 def test_cli_info_and_json_round_trip(tmp_path, capsys, generated):

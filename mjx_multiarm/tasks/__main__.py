@@ -13,22 +13,19 @@ same command after an interruption continues where it stopped and writes the sam
 from __future__ import annotations
 
 import argparse
-import concurrent.futures
 import dataclasses
 import json
-import multiprocessing
 import os
 import pathlib
-import shutil
 import sys
 import time
 
 import numpy as np
 
 from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
-from mjx_multiarm.tasks.generate import MODES, GenerationSpec, generate_chunk
+from mjx_multiarm.tasks.generate import MODES, GenerationSpec, generate_dataset
 from mjx_multiarm.tasks.original_json import export_tasks, import_tasks
-from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_of, concatenate
+from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_of
 
 #: Named presets: (count, team sizes, mode, seed). The paper's train and test sets, and
 #: small ones for the default CPU run and the tests.
@@ -70,58 +67,6 @@ class Progress:
 
     def close(self) -> None:
         print(file=sys.stderr)
-
-
-def _spec_record(spec: GenerationSpec) -> dict:
-    return {**dataclasses.asdict(spec), "arm_counts": list(spec.arm_counts)}
-
-
-def _make_chunk(spec: GenerationSpec, chunk: int, path: pathlib.Path) -> int:
-    """Generate one chunk and save it atomically; returns its task count."""
-    tasks = generate_chunk(spec, chunk)
-    save_tasks(path, tasks)
-    return tasks.num_tasks
-
-
-def generate(spec: GenerationSpec, out: pathlib.Path, quiet: bool = False, workers: int = 1) -> Tasks:
-    """Generate ``spec`` into ``out`` (resumable through ``out.partial/``); returns the tasks.
-
-    ``workers`` > 1 makes chunks in that many processes; the output is the same.
-    """
-    partial = out.with_name(out.name + ".partial")
-    partial.mkdir(parents=True, exist_ok=True)
-    record = _spec_record(spec)
-    spec_file = partial / "spec.json"
-    if spec_file.exists() and json.loads(spec_file.read_text()) != record:
-        raise ValueError(f"{partial}: holds a generation with other arguments; delete it or use another --out")
-    spec_file.write_text(json.dumps(record, sort_keys=True))
-    chunk_path = [partial / f"chunk_{c:06d}.npz" for c in range(spec.num_chunks)]
-    todo = [c for c, path in enumerate(chunk_path) if not path.exists()]
-    done = spec.count - sum(min(spec.chunk_size, spec.count - c * spec.chunk_size) for c in todo)
-    resumed = done
-    progress = None if quiet else Progress(spec.count, "tasks")
-
-    def finished(count: int) -> None:
-        nonlocal done
-        done += count
-        if progress:
-            progress.update(done, done - resumed)
-
-    if workers > 1 and len(todo) > 1:
-        context = multiprocessing.get_context("spawn")  # JAX is not fork-safe
-        with concurrent.futures.ProcessPoolExecutor(min(workers, len(todo)), mp_context=context) as pool:
-            futures = [pool.submit(_make_chunk, spec, c, chunk_path[c]) for c in todo]
-            for future in concurrent.futures.as_completed(futures):
-                finished(future.result())
-    else:
-        for c in todo:
-            finished(_make_chunk(spec, c, chunk_path[c]))
-    if progress:
-        progress.close()
-    tasks = concatenate([load_tasks(p)[0] for p in chunk_path])
-    save_tasks(out, tasks, {"generator": record})
-    shutil.rmtree(partial)
-    return tasks
 
 
 def summarize(tasks: Tasks) -> dict:
@@ -185,7 +130,10 @@ def main(argv=None) -> None:
             fields = {"arm_counts": args.arms, "count": args.count, "mode": args.mode, "seed": args.seed, "max_arms": args.max_arms}
             overrides = {k: v for k, v in fields.items() if v is not None}
             spec = dataclasses.replace(base, **overrides) if base else GenerationSpec(**overrides)
-            tasks = generate(spec, args.out, args.quiet, args.workers)
+            progress = None if args.quiet else Progress(spec.count, "tasks")
+            tasks = generate_dataset(spec, args.out, args.workers, progress.update if progress else None)
+            if progress:
+                progress.close()
             print(f"wrote {tasks.num_tasks} tasks to {args.out}")
         elif args.command == "info":
             summary = summarize(load_tasks(args.path)[0])

@@ -10,14 +10,21 @@ leaves the joint limits, or collides are resampled; a task stuck for ``MAX_ROUND
 gets a new layout.
 
 Tasks are made in chunks; chunk ``c`` depends only on (seed, c, arguments), so any chunk can
-be regenerated identically (resumable generation). Within a chunk, team sizes cycle
+be regenerated identically: :func:`generate_dataset` keeps finished chunks on disk, resumes
+after an interruption, and can spread chunks over processes, always writing the same file. Within a chunk, team sizes cycle
 through ``arm_counts`` and difficulty (and speed) bins cycle evenly.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
+import json
+import multiprocessing
+import pathlib
+import shutil
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -29,7 +36,8 @@ from mjx_multiarm.kinematics import forward_kinematics
 from mjx_multiarm.robot import REACH
 from mjx_multiarm.scene import Scene, build_scene
 from mjx_multiarm.tasks.difficulty import task_difficulty
-from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks
+from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
+from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, concatenate
 from mjx_multiarm.transforms import yaw_quat
 
 MIN_BASE_SPACING = 0.3  # m
@@ -240,3 +248,60 @@ def generate_chunk(spec: GenerationSpec, chunk: int) -> Tasks:
         difficulty=difficulty,
         speed=speed,
     )
+
+
+def spec_record(spec: GenerationSpec) -> dict:
+    """``spec`` as JSON-serialisable data (stored beside partial and finished datasets)."""
+    return {**dataclasses.asdict(spec), "arm_counts": list(spec.arm_counts)}
+
+
+def _make_chunk(spec: GenerationSpec, chunk: int, path: pathlib.Path) -> int:
+    """Generate one chunk and save it atomically; returns its task count."""
+    tasks = generate_chunk(spec, chunk)
+    save_tasks(path, tasks)
+    return tasks.num_tasks
+
+
+def generate_dataset(
+    spec: GenerationSpec,
+    out: pathlib.Path,
+    workers: int = 1,
+    on_progress: Callable[[int, int], None] | None = None,
+) -> Tasks:
+    """Generate ``spec`` into the dataset file ``out``, resumably; returns the tasks.
+
+    Finished chunks live in ``out.partial/`` until the dataset is written, so a re-run after
+    an interruption only makes the missing chunks. ``workers`` > 1 makes chunks in that many
+    processes (same output). ``on_progress(done, made_now)`` is called after each chunk.
+    """
+    out = pathlib.Path(out)
+    partial = out.with_name(out.name + ".partial")
+    partial.mkdir(parents=True, exist_ok=True)
+    record = spec_record(spec)
+    spec_file = partial / "spec.json"
+    if spec_file.exists() and json.loads(spec_file.read_text()) != record:
+        raise ValueError(f"{partial}: holds a generation with other arguments; delete it or use another --out")
+    spec_file.write_text(json.dumps(record, sort_keys=True))
+    chunk_path = [partial / f"chunk_{c:06d}.npz" for c in range(spec.num_chunks)]
+    todo = [c for c, path in enumerate(chunk_path) if not path.exists()]
+    resumed = done = spec.count - sum(min(spec.chunk_size, spec.count - c * spec.chunk_size) for c in todo)
+
+    def finished(count: int) -> None:
+        nonlocal done
+        done += count
+        if on_progress:
+            on_progress(done, done - resumed)
+
+    if workers > 1 and len(todo) > 1:
+        context = multiprocessing.get_context("spawn")  # JAX is not fork-safe
+        with concurrent.futures.ProcessPoolExecutor(min(workers, len(todo)), mp_context=context) as pool:
+            futures = [pool.submit(_make_chunk, spec, c, chunk_path[c]) for c in todo]
+            for future in concurrent.futures.as_completed(futures):
+                finished(future.result())
+    else:
+        for c in todo:
+            finished(_make_chunk(spec, c, chunk_path[c]))
+    tasks = concatenate([load_tasks(p)[0] for p in chunk_path])
+    save_tasks(out, tasks, {"generator": record})
+    shutil.rmtree(partial)
+    return tasks
