@@ -17,7 +17,7 @@ from mjx_multiarm.tasks import __main__ as cli
 from mjx_multiarm.tasks import load_tasks, save_tasks, task_difficulty
 from mjx_multiarm.tasks import generate as generation
 from mjx_multiarm.tasks.generate import MIN_BASE_SPACING, GenerationSpec, generate_chunk, generate_dataset, spec_record
-from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, bin_of, take
+from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, bin_index, take
 
 
 @pytest.fixture(scope="module")
@@ -46,8 +46,8 @@ def test_generated_tasks_are_valid(generated):
     both = active[:, :, None] & active[:, None] & ~np.eye(10, dtype=bool)
     assert gaps[both].min() >= MIN_BASE_SPACING
     np.testing.assert_allclose(task_difficulty(tasks.base_pos, active), tasks.difficulty, atol=1e-6)
-    assert all(bin_of(d, DIFFICULTY_BINS) for d in tasks.difficulty)
-    assert all(bin_of(v, SPEED_BINS) for v in tasks.speed)
+    assert (bin_index(tasks.difficulty, DIFFICULTY_BINS) >= 0).all()
+    assert (bin_index(tasks.speed, SPEED_BINS) >= 0).all()
     assert (tasks.difficulty[tasks.num_arms == 1] == 0).all()
     assert np.abs(tasks.base_pos[..., 2]).max() == 0 and not tasks.base_pos[~active].any()
 
@@ -136,6 +136,10 @@ def test_difficulty_matches_independent_monte_carlo():
             inside = (np.linalg.norm(points[:, None] - others[None], axis=-1) <= REACH).any(axis=1)
             fractions.append(inside.mean())
         assert abs(task_difficulty(bases, np.ones(team, bool)) - max(fractions)) < 0.01, team
+
+
+def test_bins_include_only_the_last_upper_edge():
+    np.testing.assert_array_equal(bin_index([0.0, 0.35, 0.4499, 0.45, 0.5, 0.5001, -0.1], DIFFICULTY_BINS), [0, 1, 1, 2, 2, -1, -1])
 
 
 def test_difficulty_ignores_padding():

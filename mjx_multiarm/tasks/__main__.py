@@ -25,7 +25,7 @@ import numpy as np
 from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
 from mjx_multiarm.tasks.generate import MODES, GenerationSpec, generate_dataset
 from mjx_multiarm.tasks.original_json import export_tasks, import_tasks
-from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_of
+from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_index
 
 #: Named presets: (count, team sizes, mode, seed). The paper's train and test sets, and
 #: small ones for the default CPU run and the tests.
@@ -69,19 +69,23 @@ class Progress:
         print(file=sys.stderr)
 
 
+def _counts(values, bins) -> dict[str, int]:
+    index = bin_index(values, bins)
+    return {name: int((index == i).sum()) for i, name in enumerate(bins)}
+
+
 def summarize(tasks: Tasks) -> dict:
     """Counts per team size, per difficulty bin (all tasks) and speed bin (dynamic-capable tasks)."""
     arms = tasks.num_arms
     summary = {"count": int(tasks.num_tasks), "max_arms": int(tasks.max_arms), "by_team_size": {}}
     for team in sorted(set(arms.tolist())):
         rows = arms == team
-        by_difficulty = {name: 0 for name in DIFFICULTY_BINS} | {"outside": 0}
-        for value in tasks.difficulty[rows]:
-            by_difficulty[bin_of(float(value), DIFFICULTY_BINS) or "outside"] += 1
-        by_speed = {name: 0 for name in SPEED_BINS}
-        for value in tasks.speed[rows & tasks.has_dynamic_mode]:
-            by_speed[bin_of(float(value), SPEED_BINS)] += 1
-        summary["by_team_size"][str(team)] = {"count": int(rows.sum()), "difficulty": by_difficulty, "speed": by_speed}
+        difficulty = tasks.difficulty[rows]
+        summary["by_team_size"][str(team)] = {
+            "count": int(rows.sum()),
+            "difficulty": _counts(difficulty, DIFFICULTY_BINS) | {"outside": int((bin_index(difficulty, DIFFICULTY_BINS) < 0).sum())},
+            "speed": _counts(tasks.speed[rows & tasks.has_dynamic_mode], SPEED_BINS),
+        }
     return summary
 
 

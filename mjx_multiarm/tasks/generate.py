@@ -37,7 +37,7 @@ from mjx_multiarm.robot import REACH
 from mjx_multiarm.scene import Scene, build_scene
 from mjx_multiarm.tasks.difficulty import task_difficulty
 from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
-from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, concatenate
+from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_index, concatenate
 from mjx_multiarm.transforms import yaw_quat
 
 MIN_BASE_SPACING = 0.3  # m
@@ -51,6 +51,7 @@ MAX_ROUNDS = 30
 CHUNK_SIZE = 256
 LAYOUT_BATCH = 512  # candidate layouts per draw (a fixed shape: one compile)
 PROPOSALS = 16  # placement attempts per arm in a candidate layout
+MAX_LAYOUT_DRAWS = 200  # draws of LAYOUT_BATCH candidates before a (team, bin) is given up
 MODES = ("static", "dynamic")
 
 
@@ -135,19 +136,21 @@ def sample_bases(rng: np.random.Generator, teams, bins, slots: int):
     bin_names = list(DIFFICULTY_BINS)
     for team, b in sorted(set(zip(teams.tolist(), bins.tolist()))):
         todo = np.flatnonzero((teams == team) & (bins == b))
-        lower, upper = DIFFICULTY_BINS[bin_names[b]]
         spacing = LAYOUT_SPACING[bin_names[b]]
-        while len(todo):
+        for _ in range(MAX_LAYOUT_DRAWS):
+            if not len(todo):
+                break
             xy, valid, scale = _sample_layouts(rng, team, spacing, LAYOUT_BATCH)
             found = task_difficulty(xy, np.ones(xy.shape[:2], bool)) if team > 1 else np.zeros(len(xy))
-            last = b == len(bin_names) - 1
-            ok = valid & (found >= lower) & ((found < upper) | (last & (found <= upper)))
+            ok = valid & (bin_index(found, DIFFICULTY_BINS) == b)
             if ok.sum() >= 5:
                 spacing = (scale[ok].min() - 0.05, scale[ok].max() + 0.05)
             take = np.flatnonzero(ok)[: len(todo)]
             base_pos[todo[: len(take)], :team, :2] = xy[take]
             difficulty[todo[: len(take)]] = found[take]
             todo = todo[len(take) :]
+        if len(todo):
+            raise RuntimeError(f"no {team}-arm layout in the {bin_names[b]} bin after {MAX_LAYOUT_DRAWS} draws")
     yaw = rng.uniform(-np.pi, np.pi, (n, slots))
     return base_pos, yaw, difficulty
 

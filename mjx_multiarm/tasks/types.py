@@ -131,11 +131,15 @@ def take(tasks: Tasks, index) -> Tasks:
     return Tasks(**{name: np.asarray(getattr(tasks, name))[index] for name in SCHEMA})
 
 
-def bin_of(value: float, bins: dict[str, tuple[float, float]]) -> str | None:
-    """Name of the bin holding ``value`` (the last bin includes its upper edge)."""
-    names = list(bins)
-    for name in names:
-        lower, upper = bins[name]
-        if lower <= value < upper or (name == names[-1] and value == upper):
-            return name
-    return None
+def bin_index(values, bins: dict[str, tuple[float, float]]) -> np.ndarray:
+    """Index into ``bins`` of the bin holding each value, -1 outside every bin.
+
+    Bins are [lower, upper); the last one also includes its upper edge.
+    """
+    values = np.asarray(values, np.float64)
+    index = np.full(values.shape, -1)
+    bounds = list(bins.values())
+    for i, (lower, upper) in enumerate(bounds):
+        last = i == len(bounds) - 1
+        index[(values >= lower) & ((values < upper) | (last & (values == upper)))] = i
+    return index
