@@ -176,6 +176,9 @@ def test_dataset_round_trip_and_corruption(tmp_path, generated):
         load_tasks(path)
     with pytest.raises(FileNotFoundError, match="missing.npz"):
         load_tasks(tmp_path / "missing.npz")
+    (tmp_path / "text.npz").write_text("not a dataset")
+    with pytest.raises(ValueError, match="text.npz: unreadable or corrupt"):
+        load_tasks(tmp_path / "text.npz")
     np.savez(tmp_path / "old.npz", schema_version=np.array(0))
     with pytest.raises(ValueError, match="schema version 0"):
         load_tasks(tmp_path / "old.npz")

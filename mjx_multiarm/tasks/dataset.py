@@ -61,6 +61,8 @@ def load_tasks(path: str | os.PathLike) -> tuple[Tasks, dict]:
     path = pathlib.Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such task dataset")
+    if not zipfile.is_zipfile(path):
+        raise ValueError(f"{path}: unreadable or corrupt task dataset (not a valid .npz archive)")
     try:
         with np.load(path, allow_pickle=False) as data:
             if "schema_version" not in data:
