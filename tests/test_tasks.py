@@ -190,3 +190,27 @@ def test_invalid_tasks_are_never_written(tmp_path, generated):
     with pytest.raises(ValueError, match="field 'start_joints' has a non-finite value"):
         save_tasks(tmp_path / "bad.npz", bad)
     assert not list(tmp_path.iterdir())
+
+
+# --- dynamic targets ----------------------------------------------------------------------
+
+
+def test_dynamic_target_moves_at_constant_speed_and_stops_at_the_goal(generated):
+    from mjx_multiarm.tasks.dynamic import path_lengths, target_at
+
+    arm = load_arm()
+    tasks = take(generated, np.arange(8))
+    args = [jnp.asarray(x, jnp.float32) for x in (tasks.base_pos, tasks.base_quat, tasks.dynamic_start_joints, tasks.goal_joints)]
+    lengths = path_lengths(arm, *args)
+    speed = jnp.asarray(tasks.speed, jnp.float32)[:, None]
+    positions = np.stack([np.asarray(target_at(arm, *args, lengths, speed * t)[0]) for t in (0.0, 0.05)])
+    start = forward_kinematics(arm, args[0], args[1], args[2])
+    np.testing.assert_allclose(positions[0], np.asarray(start.ee_pos), atol=1e-5)
+    # Per control step, each moving target advances speed * 0.05 s along its path (up to the
+    # chord-vs-arc difference of one small step).
+    step = np.linalg.norm(positions[1] - positions[0], axis=-1)
+    moving = np.asarray(tasks.active) & (np.asarray(lengths[..., -1]) > speed * 0.1)
+    np.testing.assert_allclose(step[moving], np.broadcast_to(tasks.speed[:, None] * 0.05, step.shape)[moving], rtol=0.02)
+    end_pos, end_quat, s = target_at(arm, *args, lengths, speed * 1e3)
+    np.testing.assert_allclose(np.asarray(end_pos)[tasks.active], tasks.target_pos[tasks.active], atol=1e-5)
+    assert np.all(np.asarray(s) == 1.0)
