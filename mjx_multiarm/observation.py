@@ -1,0 +1,100 @@
+"""Decentralized observations (paper section 4.2): what each arm sees of its neighbours.
+
+Each arm observes every active arm whose base lies within ``radius`` of its own base,
+itself included. Every observed arm contributes one 107-D element, expressed in the
+observing arm's base frame:
+
+====================  ====  ===========================================================
+slice                 size  content
+====================  ====  ===========================================================
+``[0:6]``, ``[6:12]``   12  joint angles at t-1, t
+``[12:19]``             7   end-effector position + quaternion (wxyz) at t-1
+``[19:26]``             7   end-effector position + quaternion at t
+``[26:33]``             7   target position + quaternion at t-1
+``[33:40]``             7   target position + quaternion at t
+``[40:70]``             30  the 10 link points at t-1
+``[70:100]``            30  the 10 link points at t
+``[100:107]``           7   base position + quaternion (no history)
+====================  ====  ===========================================================
+
+Quaternions are made sign-canonical (w >= 0) after the change of frame. The sequence of an
+arm has fixed length ``max_arms``: masked (absent) elements first, then the observed arms
+by decreasing base distance, so the observing arm itself is always the last element. With
+``radius=0`` an arm observes only itself (the paper's individualistic ablation).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from flax import struct
+
+from mjx_multiarm.transforms import canonical_quat, quat_mul, quat_to_mat
+
+ELEMENT_SIZE = 107
+#: Default neighbour radius (m): two workspace radii, as in the original code.
+NEIGHBOUR_RADIUS = 1.7
+
+
+@struct.dataclass
+class ArmSnapshot:
+    """World-frame state of every arm slot at one step; leading dims [..., A]."""
+
+    joints: jnp.ndarray  # [..., A, 6]
+    ee_pos: jnp.ndarray  # [..., A, 3]
+    ee_quat: jnp.ndarray  # [..., A, 4] wxyz
+    target_pos: jnp.ndarray  # [..., A, 3]
+    target_quat: jnp.ndarray  # [..., A, 4]
+    points: jnp.ndarray  # [..., A, 10, 3]
+
+
+def _points_in_frames(base_pos, base_rot, points):
+    """World points [..., A(j), K, 3] in every arm i's base frame: [..., A(i), A(j), K * 3]."""
+    offset = points[..., None, :, :, :] - base_pos[..., :, None, None, :]
+    local = jnp.einsum("...iba,...ijkb->...ijka", base_rot, offset)  # R_i^T (x - p_i)
+    return local.reshape(*local.shape[:-2], -1)
+
+
+def _quats_in_frames(base_quat, quat):
+    """World orientations [..., A(j), 4] in every arm i's base frame: [..., A(i), A(j), 4]."""
+    conjugate = base_quat * jnp.array([1.0, -1.0, -1.0, -1.0], base_quat.dtype)
+    return canonical_quat(quat_mul(conjugate[..., :, None, :], quat[..., None, :, :]))
+
+
+def _elements(base_pos, base_quat, prev: ArmSnapshot, now: ArmSnapshot):
+    """[..., A(i), A(j), 107]: arm j's element in arm i's frame."""
+    base_rot = quat_to_mat(base_quat)
+    num_arms = base_pos.shape[-2]
+
+    def pose(pos, quat):
+        return [_points_in_frames(base_pos, base_rot, pos[..., None, :]), _quats_in_frames(base_quat, quat)]
+
+    joints = [jnp.broadcast_to(s.joints[..., None, :, :], (*s.joints.shape[:-2], num_arms, num_arms, 6)) for s in (prev, now)]
+    poses = [*pose(prev.ee_pos, prev.ee_quat), *pose(now.ee_pos, now.ee_quat)]
+    poses += [*pose(prev.target_pos, prev.target_quat), *pose(now.target_pos, now.target_quat)]
+    points = [_points_in_frames(base_pos, base_rot, s.points) for s in (prev, now)]
+    return jnp.concatenate([*joints, *poses, *points, *pose(base_pos, base_quat)], axis=-1)
+
+
+def observe(base_pos, base_quat, active, prev: ArmSnapshot, now: ArmSnapshot, radius: float = NEIGHBOUR_RADIUS):
+    """Every arm's observation sequence.
+
+    Args:
+      base_pos: [..., A, 3]; base_quat: [..., A, 4] (wxyz); active: [..., A] bool.
+      prev, now: the arms at t-1 and t (at reset pass the same snapshot twice).
+      radius: neighbour radius (m); 0 gives the individualistic (self-only) observation.
+
+    Returns:
+      (obs [..., A, A, 107], mask [..., A, A] bool); row i is arm i's sequence, masked
+      elements first and arm i itself last. Rows of inactive arms are fully masked.
+    """
+    elements = _elements(base_pos, base_quat, prev, now)
+    dist = jnp.linalg.norm(base_pos[..., :, None, :] - base_pos[..., None, :, :], axis=-1)  # [..., A, A]
+    eye = jnp.eye(base_pos.shape[-2], dtype=bool)
+    seen = active[..., :, None] & active[..., None, :] & ((dist <= radius) | eye)
+    key = jnp.where(seen, -dist, -jnp.inf)
+    key = jnp.where(eye, 0.0, key)  # self sorts last (every other seen arm has key < 0)
+    key = jnp.where(active[..., :, None], key, -jnp.inf)
+    order = jnp.argsort(key, axis=-1, stable=True)
+    obs = jnp.take_along_axis(elements, order[..., None], axis=-2)
+    mask = jnp.take_along_axis(seen, order, axis=-1)
+    return jnp.where(mask[..., None], obs, 0.0), mask

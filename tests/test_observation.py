@@ -1,0 +1,91 @@
+"""Observations: shapes, ordering, masking, frame invariance, padding."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conftest import random_bases, random_joints
+from mjx_multiarm.api import base_pose_arrays
+from mjx_multiarm.kinematics import forward_kinematics
+from mjx_multiarm.observation import ELEMENT_SIZE, ArmSnapshot, observe
+from mjx_multiarm.robot import load_arm
+from mjx_multiarm.transforms import quat_mul
+
+
+def _snapshot(bases, joints, targets_joints):
+    arm = load_arm()
+    pos, quat = (jnp.asarray(x, jnp.float32) for x in base_pose_arrays(bases))
+    now = forward_kinematics(arm, pos, quat, jnp.asarray(joints, jnp.float32))
+    target = forward_kinematics(arm, pos, quat, jnp.asarray(targets_joints, jnp.float32))
+    return pos, quat, ArmSnapshot(jnp.asarray(joints, jnp.float32), now.ee_pos, now.ee_quat, target.ee_pos, target.ee_quat, now.points)
+
+
+@pytest.fixture
+def scene():
+    rng = np.random.default_rng(0)
+    bases = random_bases(rng, 5)
+    return bases, random_joints(rng, (5,)), random_joints(rng, (5,)), random_joints(rng, (5,))
+
+
+def test_shapes_self_last_and_radius(scene):
+    bases, q_prev, q_now, q_goal = scene
+    pos, quat, prev = _snapshot(bases, q_prev, q_goal)
+    _, _, now = _snapshot(bases, q_now, q_goal)
+    active = jnp.ones(5, bool)
+    obs, mask = observe(pos, quat, active, prev, now)
+    assert obs.shape == (5, 5, ELEMENT_SIZE) and mask.shape == (5, 5)
+    mask, obs = np.asarray(mask), np.asarray(obs)
+    dist = np.linalg.norm(bases[:, None, :2] - bases[None, :, :2], axis=-1)
+    np.testing.assert_array_equal(mask.sum(1), (dist <= 1.7).sum(1))
+    for i in range(5):
+        assert mask[i, -1]  # self is the last element, and unmasked
+        np.testing.assert_allclose(obs[i, -1, 100:107], [0, 0, 0, 1, 0, 0, 0], atol=1e-6)  # own base
+        np.testing.assert_allclose(obs[i, -1, 6:12], q_now[i], atol=1e-6)
+        assert not mask[i, : 5 - mask[i].sum()].any()  # masked elements come first
+        seen = np.linalg.norm(obs[i, mask[i], 100:103], axis=-1)
+        assert np.all(np.diff(seen) <= 1e-6)  # decreasing base distance
+    assert not obs[~mask].any()
+    solo, solo_mask = observe(pos, quat, active, prev, now, radius=0.0)
+    np.testing.assert_array_equal(np.asarray(solo_mask).sum(1), 1)
+    np.testing.assert_allclose(np.asarray(solo)[:, -1], obs[:, -1], atol=1e-6)
+
+
+def test_moving_the_whole_scene_changes_no_observation(scene):
+    bases, q_prev, q_now, q_goal = scene
+    yaw, shift = 0.7, np.array([1.5, -2.0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    moved = bases.copy()
+    moved[:, :2] = bases[:, :2] @ np.array([[c, s], [-s, c]]) + shift
+    moved[:, 2] += yaw
+    results = []
+    for b in (bases, moved):
+        pos, quat, prev = _snapshot(b, q_prev, q_goal)
+        _, _, now = _snapshot(b, q_now, q_goal)
+        results.append(observe(pos, quat, jnp.ones(5, bool), prev, now))
+    np.testing.assert_array_equal(np.asarray(results[0][1]), np.asarray(results[1][1]))
+    np.testing.assert_allclose(np.asarray(results[0][0]), np.asarray(results[1][0]), atol=2e-5)
+
+
+def test_padding_slots_do_not_change_observations(scene):
+    bases, q_prev, q_now, q_goal = scene
+    small = [_snapshot(bases[:3], q[:3], q_goal[:3]) for q in (q_prev, q_now)]
+    obs3, mask3 = observe(small[0][0], small[0][1], jnp.ones(3, bool), small[0][2], small[1][2])
+    big = [_snapshot(bases, q, q_goal) for q in (q_prev, q_now)]
+    active = jnp.arange(5) < 3
+    obs5, mask5 = observe(big[0][0], big[0][1], active, big[0][2], big[1][2])
+    np.testing.assert_allclose(np.asarray(obs5)[:3, -3:], np.asarray(obs3), atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(mask5)[:3, -3:], np.asarray(mask3))
+    assert not np.asarray(mask5)[:3, :2].any() and not np.asarray(mask5)[3:].any()
+
+
+def test_quaternions_are_expressed_in_the_observer_frame(scene):
+    bases, q_prev, q_now, q_goal = scene
+    pos, quat, snap = _snapshot(bases, q_now, q_goal)
+    obs, mask = observe(pos, quat, jnp.ones(5, bool), snap, snap)
+    own = np.asarray(obs)[:, -1, 19:26]
+    expected = quat_mul(quat * jnp.array([1.0, -1, -1, -1]), snap.ee_quat)
+    expected = np.where(np.asarray(expected)[:, :1] < 0, -np.asarray(expected), np.asarray(expected))
+    np.testing.assert_allclose(own[:, 3:], expected, atol=1e-6)
+    assert (own[:, 3] >= 0).all()
