@@ -28,7 +28,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
-from mjx_multiarm.transforms import canonical_quat, quat_mul, quat_to_mat
+from mjx_multiarm.transforms import canonical_quat, quat_conjugate, quat_mul, quat_to_mat
 
 ELEMENT_SIZE = 107
 #: Default neighbour radius (m): two workspace radii, as in the original code.
@@ -56,8 +56,7 @@ def _points_in_frames(base_pos, base_rot, points):
 
 def _quats_in_frames(base_quat, quat):
     """World orientations [..., A(j), 4] in every arm i's base frame: [..., A(i), A(j), 4]."""
-    conjugate = base_quat * jnp.array([1.0, -1.0, -1.0, -1.0], base_quat.dtype)
-    return canonical_quat(quat_mul(conjugate[..., :, None, :], quat[..., None, :, :]))
+    return canonical_quat(quat_mul(quat_conjugate(base_quat)[..., :, None, :], quat[..., None, :, :]))
 
 
 def _elements(base_pos, base_quat, prev: ArmSnapshot, now: ArmSnapshot):

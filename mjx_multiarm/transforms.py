@@ -56,10 +56,19 @@ def canonical_quat(q):
     return jnp.where(q[..., :1] < 0, -q, q)
 
 
+def quat_conjugate(q):
+    """Conjugate (the inverse of a unit quaternion), wxyz."""
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0], jnp.result_type(q))
+
+
 def quat_angle(q1, q2):
-    """Rotation angle between two unit wxyz quaternions: ``2 arccos(|<q1, q2>|)``."""
-    dot = jnp.abs(jnp.sum(q1 * q2, axis=-1))
-    return 2.0 * jnp.arccos(jnp.clip(dot, 0.0, 1.0))
+    """Rotation angle between unit wxyz quaternions: the angle of ``q1^-1 q2``.
+
+    Computed as ``2 atan2(|vector part|, |scalar part|)``: the same value as
+    ``2 arccos(|<q1, q2>|)`` but well conditioned near zero (float32 arccos is not).
+    """
+    relative = quat_mul(quat_conjugate(q1), q2)
+    return 2.0 * jnp.arctan2(jnp.linalg.norm(relative[..., 1:], axis=-1), jnp.abs(relative[..., 0]))
 
 
 def wxyz_to_xyzw(q):

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mjx_multiarm.collision import segment_distance
-from mjx_multiarm.transforms import quat_mul, quat_to_mat, wxyz_to_xyzw, xyzw_to_wxyz
+from mjx_multiarm.transforms import axis_angle_quat, quat_angle, quat_mul, quat_to_mat, wxyz_to_xyzw, xyzw_to_wxyz
 
 coordinate = st.floats(-1.0, 1.0, allow_nan=False, width=32)
 point = st.tuples(coordinate, coordinate, coordinate).map(np.array)
@@ -68,3 +68,15 @@ def test_quaternion_conventions(q):
     rot = np.asarray(quat_to_mat(q))
     np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-5)
     np.testing.assert_allclose(np.asarray(quat_to_mat(quat_mul(q, q))), rot @ rot, atol=1e-5)
+
+
+@settings(deadline=None)
+@given(st.tuples(coordinate, coordinate, coordinate, coordinate), st.floats(1e-5, 3.0))
+def test_quat_angle_is_accurate_for_small_and_large_angles(q, angle):
+    q = np.array(q, np.float64)
+    if np.linalg.norm(q) < 1e-3:
+        return
+    q /= np.linalg.norm(q)
+    turned = quat_mul(q, axis_angle_quat(np.array([0.6, 0.0, 0.8]), angle))
+    assert abs(float(quat_angle(q, turned)) - angle) < 1e-5 + 1e-6 * angle
+    assert abs(float(quat_angle(q, -np.asarray(turned))) - angle) < 1e-5 + 1e-6 * angle  # sign-free

@@ -11,7 +11,7 @@ from mjx_multiarm.api import base_pose_arrays
 from mjx_multiarm.kinematics import forward_kinematics
 from mjx_multiarm.observation import ELEMENT_SIZE, ArmSnapshot, observe
 from mjx_multiarm.robot import load_arm
-from mjx_multiarm.transforms import quat_mul
+from mjx_multiarm.transforms import quat_conjugate, quat_mul
 
 
 def _snapshot(bases, joints, targets_joints):
@@ -85,7 +85,7 @@ def test_quaternions_are_expressed_in_the_observer_frame(scene):
     pos, quat, snap = _snapshot(bases, q_now, q_goal)
     obs, mask = observe(pos, quat, jnp.ones(5, bool), snap, snap)
     own = np.asarray(obs)[:, -1, 19:26]
-    expected = quat_mul(quat * jnp.array([1.0, -1, -1, -1]), snap.ee_quat)
+    expected = quat_mul(quat_conjugate(quat), snap.ee_quat)
     expected = np.where(np.asarray(expected)[:, :1] < 0, -np.asarray(expected), np.asarray(expected))
     np.testing.assert_allclose(own[:, 3:], expected, atol=1e-6)
     assert (own[:, 3] >= 0).all()

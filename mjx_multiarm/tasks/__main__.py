@@ -20,8 +20,6 @@ import pathlib
 import sys
 import time
 
-import numpy as np
-
 from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
 from mjx_multiarm.tasks.generate import MODES, GenerationSpec, generate_dataset
 from mjx_multiarm.tasks.original_json import export_tasks, import_tasks
@@ -55,10 +53,9 @@ class Progress:
     """A one-line progress bar on stderr: done/total, rate, ETA."""
 
     def __init__(self, total: int, unit: str):
-        self.total, self.unit, self.start, self.done = total, unit, time.perf_counter(), 0
+        self.total, self.unit, self.start = total, unit, time.perf_counter()
 
     def update(self, done: int, new: int) -> None:
-        self.done = done
         elapsed = time.perf_counter() - self.start
         rate = new / elapsed if elapsed > 0 and new else 0.0
         eta = (self.total - done) / rate if rate else float("nan")

@@ -29,6 +29,7 @@ from mjx_multiarm.api import evaluate_arms
 from mjx_multiarm.tasks.dataset import atomic_write
 from mjx_multiarm.tasks.difficulty import task_difficulty
 from mjx_multiarm.tasks.types import SCHEMA, Tasks, validate
+from mjx_multiarm.transforms import quat_angle
 
 #: Keys every task file must have.
 REQUIRED_KEYS = ("base_poses", "start_config", "goal_config", "target_eff_poses", "difficulty")
@@ -194,14 +195,6 @@ def _task_files(paths) -> list[pathlib.Path]:
     return [pathlib.Path(p) for p in paths]
 
 
-def _rotation_angle(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
-    """Angle (rad) of the rotation q1^-1 q2 of wxyz quaternions: 2 atan2(|vector|, |scalar|)."""
-    w1, v1, w2, v2 = q1[..., 0], q1[..., 1:], q2[..., 0], q2[..., 1:]
-    scalar = w1 * w2 + np.sum(v1 * v2, axis=-1)
-    vector = w1[..., None] * v2 - w2[..., None] * v1 - np.cross(v1, v2)
-    return 2.0 * np.arctan2(np.linalg.norm(vector, axis=-1), np.abs(scalar))
-
-
 def import_tasks(paths, max_arms: int | None = None) -> tuple[Tasks, ImportReport]:
     """Read task files into numpy :class:`Tasks` and check them against FK and difficulty.
 
@@ -246,7 +239,7 @@ def import_tasks(paths, max_arms: int | None = None) -> tuple[Tasks, ImportRepor
     fk = evaluate_arms(base_poses, tasks.goal_joints, tasks.active, max_arms=max_arms)
     fk_quat = np.roll(np.asarray(fk.ee_quat, np.float64), 1, axis=-1)
     position_error = np.linalg.norm(fk.ee_pos - tasks.target_pos, axis=-1)[tasks.active]
-    rotation_error = _rotation_angle(fk_quat, tasks.target_quat)[tasks.active]
+    rotation_error = np.asarray(quat_angle(fk_quat, tasks.target_quat), np.float64)[tasks.active]
     difficulties = task_difficulty(tasks.base_pos, tasks.active)
     return tasks, ImportReport(
         count=tasks.num_tasks,

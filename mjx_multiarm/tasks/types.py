@@ -7,8 +7,9 @@ Every task starts at ``start_joints``. In static mode the targets are the end-ef
 poses ``FK(goal_joints)``, stored as ``target_pos`` / ``target_quat``. In dynamic mode the
 targets start at ``FK(dynamic_start_joints)`` and move along
 ``FK(interp(dynamic_start_joints -> goal_joints))`` at ``speed`` m/s, ending at the static
-targets (:mod:`mjx_multiarm.tasks.dynamic`). In the paper's words (section 4.1) q1 = start, q2 = dynamic start, q3 = goal; in
-the original JSON files ``start_config``, ``start_goal_config`` and ``goal_config``.
+targets (:mod:`mjx_multiarm.tasks.dynamic`). In the paper's words (section 4.1) q1 = start,
+q2 = dynamic start, q3 = goal; in the original JSON files ``start_config``,
+``start_goal_config`` and ``goal_config``.
 Tasks generated without a dynamic mode have ``speed`` 0 and dynamic start = goal.
 """
 
