@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from mjx_multiarm.robot import load_arm
+from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
 
 REFERENCE = pathlib.Path(__file__).resolve().parents[2] / "shared" / "reference" / "ur5"
 
@@ -51,3 +52,9 @@ def random_padded_scenes(rng: np.random.Generator, count: int, max_arms: int, sp
         bases[k, :n] = random_bases(rng, n)
         active[k, :n] = True
     return bases, random_joints(rng, (count, max_arms), spread), active
+
+
+@pytest.fixture(scope="session")
+def generated():
+    """256 dynamic-capable tasks of 1-10 arms in 10 slots (one chunk, seed 7)."""
+    return generate_chunk(GenerationSpec(count=256, arm_counts=tuple(range(1, 11)), mode="dynamic", seed=7), 0)

@@ -20,13 +20,6 @@ from mjx_multiarm.tasks.generate import MIN_BASE_SPACING, GenerationSpec, genera
 from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, bin_index, take
 
 
-@pytest.fixture(scope="module")
-def generated():
-    """256 dynamic-capable tasks of 1-10 arms in 10 slots (one chunk)."""
-    spec = GenerationSpec(count=256, arm_counts=tuple(range(1, 11)), mode="dynamic", seed=7)
-    return generate_chunk(spec, 0)
-
-
 def test_generated_tasks_are_valid(generated):
     tasks, arm, scene = generated, load_arm(), build_scene(10)
     active = tasks.active

@@ -144,3 +144,30 @@ def bin_index(values, bins: dict[str, tuple[float, float]]) -> np.ndarray:
         last = i == len(bounds) - 1
         index[(values >= lower) & ((values < upper) | (last & (values == upper)))] = i
     return index
+
+
+def with_slots(tasks: Tasks, max_arms: int, source: str = "tasks") -> Tasks:
+    """The same tasks padded (or trimmed) to ``max_arms`` arm slots.
+
+    Empty slots hold zeros and identity quaternions. Raises ValueError naming the first
+    task whose team is larger than ``max_arms``.
+    """
+    too_big = np.flatnonzero(np.asarray(tasks.active)[:, max_arms:].any(axis=-1))
+    if len(too_big):
+        first = int(too_big[0])
+        raise ValueError(
+            f"{source}: task {int(tasks.task_id[first])} has {int(tasks.num_arms[first])} arms, "
+            f"more than the {max_arms} slots ({len(too_big)} such tasks)"
+        )
+
+    def resized(name: str, per_arm: bool):
+        value = np.asarray(getattr(tasks, name))
+        if not per_arm:
+            return value
+        value = value[:, :max_arms]
+        fill = np.zeros((value.shape[0], max_arms - value.shape[1], *value.shape[2:]), value.dtype)
+        if name.endswith("quat"):
+            fill[..., 0] = 1.0
+        return np.concatenate([value, fill], axis=1)
+
+    return Tasks(**{name: resized(name, bool(trailing)) for name, (_, trailing) in SCHEMA.items()})

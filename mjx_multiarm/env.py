@@ -1,0 +1,274 @@
+"""The multi-arm reaching environment (paper sections 4.2-4.3) as pure JAX functions.
+
+:class:`ReachingEnv` follows the MuJoCo Playground / Brax style: ``reset(rng, task)`` and
+``step(state, actions)`` are pure functions of pytrees, so ``jax.vmap`` runs thousands of
+environments at once and ``jax.jit`` wraps whole ``lax.scan`` rollouts. One compiled
+function serves every team size: a task occupies the first of the scene's ``max_arms`` slots
+and the rest are masked.
+
+Control (kinematic position control of an industrial arm): every 0.05 s control step each
+arm receives a 6-D action, a delta-joint command. The joint motion is
+``clip(action * action_scale, -v_max * dt, v_max * dt)``, then the joint limits; by default
+``action_scale = v_max * dt``, so an action of +-1 is full speed. The motion is checked for
+collision along the way (swept: substeps no further apart than 0.05 rad of any joint).
+
+Rules (documented here once):
+
+- Non-finite action components are replaced by 0 (that joint holds still) and flagged per
+  arm in ``state.metrics["nonfinite_action"]``; actions of the wrong shape raise
+  ``ValueError`` when traced. Actions of inactive slots are ignored.
+- Rewards per arm add up: ``collision`` if the arm collided during the step, ``reach``
+  while it is within tolerance of its target, ``team`` to every arm when all arms are
+  within tolerance at once (success). Presets: :data:`REWARDS`.
+- An episode ends on success, on any collision (a failure for the whole team), or after
+  ``max_steps`` steps (a failure; ``truncated`` marks it for bootstrapping). Stepping a
+  finished episode returns it unchanged, with zero reward.
+- Tolerances (eps_p m, eps_r rad) live in the state, so a curriculum changes them without
+  recompiling. Reaching counts against the target of that step (moving targets move first).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from mjx_multiarm.collision import SWEEP_RESOLUTION, num_substeps, swept_contacts
+from mjx_multiarm.kinematics import forward_kinematics
+from mjx_multiarm.observation import NEIGHBOUR_RADIUS, ArmSnapshot, observe
+from mjx_multiarm.robot import NUM_JOINTS
+from mjx_multiarm.scene import Scene, build_scene
+from mjx_multiarm.tasks.dynamic import PATH_SAMPLES, path_lengths, target_at
+from mjx_multiarm.tasks.types import Tasks
+from mjx_multiarm.transforms import quat_angle
+
+#: Seconds per control step (the paper's action interval).
+CONTROL_PERIOD = 0.05
+#: Evaluation tolerances: 2 cm, 0.1 rad.
+EVAL_TOLERANCE = (0.02, 0.1)
+
+
+@dataclasses.dataclass(frozen=True)
+class Rewards:
+    """Per-arm reward terms (they add up)."""
+
+    team: float  # every arm, when all arms are within tolerance at once
+    reach: float  # an arm within tolerance of its target
+    collision: float  # an arm that collided during the step
+
+
+#: ``team``: the paper's cooperative reward; ``selfish``: its ablation without team reward.
+REWARDS = {"team": Rewards(team=1.0, reach=0.01, collision=-0.05), "selfish": Rewards(team=0.0, reach=0.1, collision=-0.05)}
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    """Static settings of the environment (changing one means recompiling).
+
+    Attributes:
+      max_steps: episode length in control steps (paper 500; original benchmark code 400).
+      action_scale: radians of joint motion per unit of action; None means each joint's
+        velocity limit times the control period (an action of +-1 is full speed).
+      neighbour_radius: bases within this distance (m) are observed; 1.7 as in the original
+        code, 0.85 as in the paper text, 0 for the individualistic ablation (self only).
+      reward: a key of :data:`REWARDS`.
+      dynamic_targets: targets of tasks with a speed move along their paths
+        (:mod:`mjx_multiarm.tasks.dynamic`); otherwise every target is static.
+      tolerance: default (eps_p m, eps_r rad) at reset.
+      sweep_resolution: largest joint motion (rad) between two collision checks of a step.
+    """
+
+    max_steps: int = 500
+    action_scale: float | None = None
+    neighbour_radius: float = NEIGHBOUR_RADIUS
+    reward: str = "team"
+    dynamic_targets: bool = False
+    tolerance: tuple[float, float] = EVAL_TOLERANCE
+    sweep_resolution: float = SWEEP_RESOLUTION
+
+    def __post_init__(self):
+        if self.max_steps < 1:
+            raise ValueError(f"EnvConfig.max_steps must be >= 1, got {self.max_steps}")
+        if self.action_scale is not None and not self.action_scale > 0:
+            raise ValueError(f"EnvConfig.action_scale must be > 0 or None, got {self.action_scale}")
+        if not self.neighbour_radius >= 0:
+            raise ValueError(f"EnvConfig.neighbour_radius must be >= 0, got {self.neighbour_radius}")
+        if self.reward not in REWARDS:
+            raise ValueError(f"EnvConfig.reward must be one of {sorted(REWARDS)}, got {self.reward!r}")
+        if len(self.tolerance) != 2 or not all(t > 0 for t in self.tolerance):
+            raise ValueError(f"EnvConfig.tolerance must be (eps_p > 0, eps_r > 0), got {self.tolerance}")
+        if not self.sweep_resolution > 0:
+            raise ValueError(f"EnvConfig.sweep_resolution must be > 0, got {self.sweep_resolution}")
+
+
+@struct.dataclass
+class State:
+    """One environment (add leading batch dims with ``vmap``); ``A`` = max_arms slots.
+
+    Attributes:
+      task: the episode's task (one row of a device task bank).
+      joints: [A, 6] joint angles.
+      arms: world-frame snapshot of the arms at this step (next step's history frame).
+      obs: [A, A, 107] every arm's observation sequence; obs_mask: [A, A] (see
+        :func:`mjx_multiarm.observation.observe`).
+      reward: [A] reward of the last step.
+      reached: [A] arm within tolerance of its target (inactive slots False).
+      collided: [A] arm collided during the last step.
+      success: all arms within tolerance at once, no collision (ends the episode).
+      done: the episode has ended (success, collision or timeout).
+      truncated: it ended by timeout only.
+      step: control steps taken.
+      tolerance: [2] (eps_p m, eps_r rad).
+      target_lengths: [A, samples] arc-length tables of moving targets ([A, 0] when static).
+      metrics: ``min_distance`` [A] smallest signed distance (m) during the last step;
+        ``nonfinite_action`` [A] the arm's action held a NaN or inf.
+    """
+
+    task: Tasks
+    joints: jnp.ndarray
+    arms: ArmSnapshot
+    obs: jnp.ndarray
+    obs_mask: jnp.ndarray
+    reward: jnp.ndarray
+    reached: jnp.ndarray
+    collided: jnp.ndarray
+    success: jnp.ndarray
+    done: jnp.ndarray
+    truncated: jnp.ndarray
+    step: jnp.ndarray
+    tolerance: jnp.ndarray
+    target_lengths: jnp.ndarray
+    metrics: dict
+
+
+class ReachingEnv:
+    """Multi-arm reaching in a padded scene of ``max_arms`` slots."""
+
+    def __init__(self, max_arms: int = 10, config: EnvConfig = EnvConfig()):
+        self.config = config
+        self.scene: Scene = build_scene(max_arms)
+        self.max_arms = max_arms
+        arm = self.scene.arm
+        self.rewards = REWARDS[config.reward]
+        #: [6] largest joint motion per control step (rad).
+        self.max_step = (arm.velocity_limit * CONTROL_PERIOD).astype(np.float32)
+        #: [6] radians of joint motion per unit of action.
+        self.action_scale = self.max_step if config.action_scale is None else np.full(NUM_JOINTS, config.action_scale, np.float32)
+        self.substeps = num_substeps(np.zeros(NUM_JOINTS), self.max_step, config.sweep_resolution)
+        self.joint_range = arm.joint_range.astype(np.float32)
+
+    @property
+    def action_shape(self) -> tuple[int, int]:
+        return (self.max_arms, NUM_JOINTS)
+
+    def joint_deltas_to_actions(self, deltas):
+        """Actions that move the joints by ``deltas`` [..., 6] (each within the per-step limit)."""
+        return deltas / self.action_scale
+
+    def _check_task(self, task: Tasks) -> None:
+        if task.active.shape != (self.max_arms,):
+            raise ValueError(
+                f"task has slots of shape {task.active.shape}, the environment expects one task of "
+                f"{self.max_arms} slots: pad tasks with mjx_multiarm.tasks.types.with_slots and pass one row"
+            )
+
+    def _targets(self, task: Tasks, lengths, step):
+        """Target poses [A, 3], [A, 4] at control step ``step``."""
+        if not self.config.dynamic_targets:
+            return task.target_pos, task.target_quat
+        distance = task.speed * CONTROL_PERIOD * step
+        pos, quat, _ = target_at(self.scene.arm, task.base_pos, task.base_quat, task.dynamic_start_joints, task.goal_joints, lengths, distance)
+        return pos, quat
+
+    def _snapshot(self, task: Tasks, joints, lengths, step) -> ArmSnapshot:
+        frames = forward_kinematics(self.scene.arm, task.base_pos, task.base_quat, joints)
+        target_pos, target_quat = self._targets(task, lengths, step)
+        return ArmSnapshot(joints, frames.ee_pos, frames.ee_quat, target_pos, target_quat, frames.points)
+
+    def _reached(self, task: Tasks, arms: ArmSnapshot, tolerance):
+        position = jnp.linalg.norm(arms.ee_pos - arms.target_pos, axis=-1)
+        angle = quat_angle(arms.ee_quat, arms.target_quat)
+        return task.active & (position < tolerance[0]) & (angle < tolerance[1])
+
+    def _observe(self, task: Tasks, prev: ArmSnapshot, now: ArmSnapshot):
+        return observe(task.base_pos, task.base_quat, task.active, prev, now, self.config.neighbour_radius)
+
+    def reset(self, rng, task: Tasks, tolerance=None) -> State:
+        """The state at the start of ``task`` (one row of a device task bank).
+
+        ``rng`` is accepted for the Brax/Playground signature; a task fixes its episode, so
+        reset draws nothing. ``tolerance`` (eps_p, eps_r) defaults to ``config.tolerance``.
+        """
+        del rng
+        self._check_task(task)
+        tolerance = jnp.asarray(self.config.tolerance if tolerance is None else tolerance, jnp.float32)
+        if self.config.dynamic_targets:
+            lengths = path_lengths(self.scene.arm, task.base_pos, task.base_quat, task.dynamic_start_joints, task.goal_joints, PATH_SAMPLES)
+        else:
+            lengths = jnp.zeros((self.max_arms, 0), jnp.float32)
+        step = jnp.zeros((), jnp.int32)
+        arms = self._snapshot(task, task.start_joints, lengths, step)
+        obs, obs_mask = self._observe(task, arms, arms)
+        no = jnp.zeros(self.max_arms, bool)
+        return State(
+            task=task,
+            joints=task.start_joints,
+            arms=arms,
+            obs=obs,
+            obs_mask=obs_mask,
+            reward=jnp.zeros(self.max_arms, jnp.float32),
+            reached=self._reached(task, arms, tolerance),
+            collided=no,
+            success=jnp.zeros((), bool),
+            done=jnp.zeros((), bool),
+            truncated=jnp.zeros((), bool),
+            step=step,
+            tolerance=tolerance,
+            target_lengths=lengths,
+            metrics={"min_distance": jnp.full(self.max_arms, jnp.inf, jnp.float32), "nonfinite_action": no},
+        )
+
+    def step(self, state: State, actions) -> State:
+        """Apply ``actions`` [max_arms, 6] for one control step (see the module rules)."""
+        actions = jnp.asarray(actions)
+        if actions.shape != self.action_shape:
+            raise ValueError(f"actions have shape {actions.shape}, expected {self.action_shape} (max_arms, joints)")
+        task = state.task
+        finite = jnp.isfinite(actions)
+        delta = jnp.clip(jnp.where(finite, actions, 0.0) * self.action_scale, -self.max_step, self.max_step)
+        delta = jnp.where(task.active[:, None], delta, 0.0)
+        joints = jnp.clip(state.joints + delta, self.joint_range[:, 0], self.joint_range[:, 1])
+        contacts = swept_contacts(self.scene, task.base_pos, task.base_quat, state.joints, joints, task.active, self.substeps)
+        collided = contacts.collided & task.active
+
+        step = state.step + 1
+        arms = self._snapshot(task, joints, state.target_lengths, step)
+        reached = self._reached(task, arms, state.tolerance)
+        any_collision = collided.any()
+        success = jnp.all(reached | ~task.active) & ~any_collision
+        terms = self.rewards
+        reward = terms.collision * collided + terms.reach * reached + terms.team * success
+        timeout = step >= self.config.max_steps
+        obs, obs_mask = self._observe(task, state.arms, arms)
+        stepped = State(
+            task=task,
+            joints=joints,
+            arms=arms,
+            obs=obs,
+            obs_mask=obs_mask,
+            reward=jnp.where(task.active, reward, 0.0).astype(jnp.float32),
+            reached=reached,
+            collided=collided,
+            success=success,
+            done=success | any_collision | timeout,
+            truncated=timeout & ~success & ~any_collision,
+            step=step,
+            tolerance=state.tolerance,
+            target_lengths=state.target_lengths,
+            metrics={"min_distance": contacts.min_distance, "nonfinite_action": task.active & ~finite.all(axis=-1)},
+        )
+        finished = state.replace(reward=jnp.zeros_like(state.reward))
+        return jax.tree.map(lambda old, new: jnp.where(state.done, old, new), finished, stepped)

@@ -1,0 +1,189 @@
+"""Batched use of :class:`~mjx_multiarm.env.ReachingEnv`: task banks on device, auto-reset,
+episode statistics, and replaying stored action sequences (expert demonstrations).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from mjx_multiarm.env import ReachingEnv, State
+from mjx_multiarm.tasks.types import SCHEMA, Tasks, validate, with_slots
+
+
+@struct.dataclass
+class TaskBank:
+    """Tasks held on device, padded to the environment's slots, float32.
+
+    On device ``tasks.task_id`` is the row of each task in the bank (JAX keeps 32-bit
+    integers); the dataset's own int64 ids stay on the host in ``task_ids``.
+    """
+
+    tasks: Tasks  # [N, max_arms]
+    task_ids: np.ndarray = struct.field(pytree_node=False)
+
+    @classmethod
+    def from_tasks(cls, tasks: Tasks, max_arms: int, source: str = "tasks") -> TaskBank:
+        """Validate numpy ``tasks``, fit them to ``max_arms`` slots and move them to device.
+
+        Raises ValueError for malformed tasks or a team larger than ``max_arms``.
+        """
+        tasks = with_slots(validate(tasks, source), max_arms, source)
+        if tasks.num_tasks == 0:
+            raise ValueError(f"{source}: the task bank needs at least one task")
+
+        def to_device(name):
+            value = np.asarray(getattr(tasks, name))
+            if name == "task_id":
+                return jnp.arange(len(value), dtype=jnp.int32)
+            return jnp.asarray(value, jnp.float32 if value.dtype.kind == "f" else value.dtype)
+
+        return cls(tasks=Tasks(**{name: to_device(name) for name in SCHEMA}), task_ids=np.asarray(tasks.task_id))
+
+    @property
+    def size(self) -> int:
+        return int(self.tasks.active.shape[0])
+
+    def take(self, index) -> Tasks:
+        """The tasks at device indices ``index`` [...]."""
+        return jax.tree.map(lambda x: x[index], self.tasks)
+
+
+@struct.dataclass
+class EpisodeStats:
+    """Counts of finished episodes per team size (index = number of arms, 0 unused)."""
+
+    episodes: jnp.ndarray
+    successes: jnp.ndarray
+    collisions: jnp.ndarray
+    timeouts: jnp.ndarray
+    success_steps: jnp.ndarray  # sum of episode lengths of successful episodes
+
+    @classmethod
+    def zeros(cls, max_arms: int) -> EpisodeStats:
+        return cls(*(jnp.zeros(max_arms + 1, jnp.int32) for _ in range(5)))
+
+    def add(self, finished: State) -> EpisodeStats:
+        """Count the episodes of a batch of stepped states that ended at this step."""
+        ended = finished.done
+        team = finished.task.active.sum(axis=-1)
+
+        def count(flag):
+            return jnp.zeros_like(self.episodes).at[team].add(flag.astype(jnp.int32))
+
+        collided = finished.collided.any(axis=-1)
+        return EpisodeStats(
+            episodes=self.episodes + count(ended),
+            successes=self.successes + count(ended & finished.success),
+            collisions=self.collisions + count(ended & collided),
+            timeouts=self.timeouts + count(ended & finished.truncated),
+            success_steps=self.success_steps + jnp.zeros_like(self.episodes).at[team].add(jnp.where(ended & finished.success, finished.step, 0)),
+        )
+
+    def summary(self) -> dict:
+        """Host-side rates per team size with at least one episode, and over all of them."""
+        counts = {name: np.asarray(getattr(self, name)) for name in ("episodes", "successes", "collisions", "timeouts", "success_steps")}
+
+        def rates(sel):
+            n = int(counts["episodes"][sel].sum())
+            won = int(counts["successes"][sel].sum())
+            return {
+                "episodes": n,
+                "success_rate": won / n if n else float("nan"),
+                "collision_rate": int(counts["collisions"][sel].sum()) / n if n else float("nan"),
+                "timeout_rate": int(counts["timeouts"][sel].sum()) / n if n else float("nan"),
+                "mean_steps_to_success": int(counts["success_steps"][sel].sum()) / won if won else float("nan"),
+            }
+
+        by_team = {int(k): rates(k) for k in np.flatnonzero(counts["episodes"])}
+        return {"all": rates(slice(None)), "by_team_size": by_team}
+
+
+@struct.dataclass
+class BatchState:
+    """A batch of environments with auto-reset: ``env`` has leading dim [B]."""
+
+    env: State
+    rng: jax.Array
+    cursor: jnp.ndarray  # next bank row in sequential order
+    tolerance: jnp.ndarray  # [2] used by the next resets; a curriculum sets it
+    stats: EpisodeStats
+
+
+class AutoReset:
+    """Steps a batch of environments and restarts finished ones with tasks from a bank.
+
+    ``order="uniform"`` draws each new task uniformly at random; ``"sequential"`` walks the
+    bank in order (wrapping around), so B environments cover the bank once every N episodes.
+    """
+
+    def __init__(self, env: ReachingEnv, bank: TaskBank, order: str = "uniform"):
+        if order not in ("uniform", "sequential"):
+            raise ValueError(f"order must be 'uniform' or 'sequential', got {order!r}")
+        if bank.tasks.active.shape[1] != env.max_arms:
+            raise ValueError(f"task bank has {bank.tasks.active.shape[1]} slots, the environment {env.max_arms}")
+        self.env, self.bank, self.order = env, bank, order
+
+    def _next_rows(self, rng, cursor, wanted):
+        """Bank rows for the environments flagged in ``wanted`` [B], and the new cursor."""
+        if self.order == "uniform":
+            return jax.random.randint(rng, wanted.shape, 0, self.bank.size), cursor
+        offset = jnp.cumsum(wanted) - 1
+        return (cursor + offset) % self.bank.size, (cursor + wanted.sum()) % self.bank.size
+
+    def _reset_rows(self, rows, tolerance) -> State:
+        tasks = self.bank.take(rows)
+        return jax.vmap(lambda task: self.env.reset(None, task, tolerance))(tasks)
+
+    def reset(self, rng, batch: int, tolerance=None) -> BatchState:
+        """``batch`` fresh environments."""
+        tolerance = jnp.asarray(self.env.config.tolerance if tolerance is None else tolerance, jnp.float32)
+        rng, key = jax.random.split(rng)
+        rows, cursor = self._next_rows(key, jnp.zeros((), jnp.int32), jnp.ones(batch, bool))
+        return BatchState(self._reset_rows(rows, tolerance), rng, cursor, tolerance, EpisodeStats.zeros(self.env.max_arms))
+
+    def step(self, state: BatchState, actions) -> tuple[BatchState, State]:
+        """Step every environment with ``actions`` [B, max_arms, 6].
+
+        Returns ``(next, stepped)``: ``stepped`` holds the states right after the step (their
+        observations, rewards and done flags are the transitions to learn from); in ``next``
+        the environments that finished have been reset with new tasks.
+        """
+        stepped = jax.vmap(self.env.step)(state.env, actions)
+        rng, key = jax.random.split(state.rng)
+        rows, cursor = self._next_rows(key, state.cursor, stepped.done)
+        fresh = self._reset_rows(rows, state.tolerance)
+        env = jax.tree.map(lambda f, s: jnp.where(_expand(stepped.done, f), f, s), fresh, stepped)
+        return BatchState(env, rng, cursor, state.tolerance, state.stats.add(stepped)), stepped
+
+
+def _expand(flag, like):
+    """``flag`` [B] reshaped to broadcast against ``like`` [B, ...]."""
+    return flag.reshape(flag.shape + (1,) * (like.ndim - flag.ndim))
+
+
+def replay_actions(env: ReachingEnv, state: State, actions, length) -> tuple[State, jnp.ndarray]:
+    """Execute a stored action sequence from ``state`` (the expert-replay hook).
+
+    Args:
+      actions: [T, max_arms, 6] actions, padded beyond ``length`` (their values are unused).
+      length: number of valid actions (traced; the compiled shape depends only on T).
+
+    Returns:
+      (states [T], valid [T]): the state after each action, and whether that step is part of
+      the demonstration (within ``length`` and not after the episode ended). Steps beyond
+      ``length`` hold the arms still. Batch it with ``vmap``.
+    """
+
+    def one(current, inputs):
+        t, action = inputs
+        action = jnp.where(t < length, action, 0.0)
+        valid = (t < length) & ~current.done
+        nxt = env.step(current, action)
+        return nxt, (nxt, valid)
+
+    steps = jnp.arange(actions.shape[0])
+    _, (states, valid) = jax.lax.scan(one, state, (steps, actions))
+    return states, valid

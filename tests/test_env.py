@@ -1,0 +1,326 @@
+"""The reaching environment: dynamics, rewards, invariances, padding, wrappers, bad input."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conftest import random_joints
+from mjx_multiarm.api import base_pose_arrays
+from mjx_multiarm.collision import scene_contacts
+from mjx_multiarm.env import CONTROL_PERIOD, EnvConfig, ReachingEnv
+from mjx_multiarm.ik import solve_positions
+from mjx_multiarm.kinematics import forward_kinematics
+from mjx_multiarm.robot import load_arm
+from mjx_multiarm.scripted import ik_actions
+from mjx_multiarm.tasks.types import Tasks, take, with_slots
+from mjx_multiarm.transforms import quat_mul, yaw_quat
+from mjx_multiarm.wrappers import AutoReset, TaskBank, replay_actions
+
+
+def teams_of(tasks: Tasks, arms: int, slots: int) -> TaskBank:
+    """The generated tasks with ``arms`` arms, in a bank of ``slots`` slots."""
+    return TaskBank.from_tasks(take(tasks, tasks.num_arms == arms), slots)
+
+
+def make_tasks(bases, start, goal) -> Tasks:
+    """Numpy tasks from planar bases [N, A, 3] and joints [N, A, 6] (all slots active)."""
+    arm = load_arm()
+    pos, quat = base_pose_arrays(bases)
+    frames = forward_kinematics(arm, pos, quat, jnp.asarray(goal, jnp.float32))
+    n, a = bases.shape[:2]
+    return Tasks(
+        task_id=np.arange(n, dtype=np.int64), active=np.ones((n, a), bool), base_pos=pos, base_quat=quat,
+        start_joints=start, goal_joints=goal, dynamic_start_joints=goal,
+        target_pos=np.asarray(frames.ee_pos, np.float64), target_quat=np.asarray(frames.ee_quat, np.float64),
+        difficulty=np.zeros(n), speed=np.zeros(n),
+    )
+
+
+def rollout(env: ReachingEnv, steps: int, policy=None):
+    """jit(vmap) rollout from reset: (final states, stacked stepped states, actions)."""
+    policy = policy or (lambda state: ik_actions(env, state))
+
+    @jax.jit
+    def run(tasks, tolerance):
+        start = jax.vmap(lambda task: env.reset(None, task, tolerance))(tasks)
+
+        def body(state, _):
+            actions = jax.vmap(policy)(state)
+            state = jax.vmap(env.step)(state, actions)
+            return state, (state, actions)
+
+        final, (states, actions) = jax.lax.scan(body, start, None, steps)
+        return final, states, actions
+
+    return run
+
+
+@pytest.fixture(scope="module")
+def env1():
+    return ReachingEnv(1, EnvConfig(max_steps=150))
+
+
+@pytest.fixture(scope="module")
+def scripted(generated, env1):
+    """The scripted IK controller on the generated 1-arm tasks: (bank, final, states, actions)."""
+    bank = teams_of(generated, 1, 1)
+    return bank, *rollout(env1, 150)(bank.tasks, jnp.asarray([0.02, 0.1]))
+
+
+def test_scripted_ik_solves_most_one_arm_tasks(scripted):
+    bank, final, states, _ = scripted
+    success = np.asarray(final.success)
+    assert success.mean() >= 0.7, success.mean()
+    assert np.all(np.asarray(final.done))
+    # Success means both tolerances hold at that step; the team reward is paid once.
+    ee = np.asarray(final.arms.ee_pos - final.arms.target_pos)[success, 0]
+    assert np.all(np.linalg.norm(ee, axis=-1) < 0.02)
+    returns = np.asarray(states.reward).sum(axis=0)[:, 0]
+    np.testing.assert_allclose(returns[success], 1.01, atol=1e-6)  # the final step only (no prior reach)
+    assert np.all(returns[~success] <= 0.0)  # failures end in a collision, never a success
+    # Per-step joint motion never exceeds the velocity limit times the control period.
+    joints = np.concatenate([np.asarray(bank.tasks.start_joints)[None], np.asarray(states.joints)])
+    limit = load_arm().velocity_limit * CONTROL_PERIOD
+    assert np.all(np.abs(np.diff(joints, axis=0)) <= limit + 1e-6)
+
+
+def test_dynamic_targets_move_at_task_speed_and_can_be_tracked(generated):
+    env = ReachingEnv(1, EnvConfig(max_steps=300, dynamic_targets=True))
+    bank = teams_of(generated, 1, 1)
+    final, states, _ = rollout(env, 300)(bank.tasks, jnp.asarray([0.02, 0.1]))
+    arm, tasks = load_arm(), bank.tasks
+    start = forward_kinematics(arm, tasks.base_pos, tasks.base_quat, tasks.dynamic_start_joints).ee_pos
+    reset = jax.vmap(lambda task: env.reset(None, task))(tasks)
+    np.testing.assert_allclose(reset.arms.target_pos, start, atol=1e-5)
+    running = ~np.asarray(states.done[4])  # episodes still going after 5 steps
+    moved = np.linalg.norm(np.asarray(states.arms.target_pos[4] - start), axis=-1)[running, 0]
+    expected = np.asarray(tasks.speed)[running] * 5 * CONTROL_PERIOD
+    assert running.sum() >= 10
+    np.testing.assert_allclose(moved, expected, rtol=0.1)
+    assert np.asarray(final.success).mean() >= 0.6
+    static = ReachingEnv(1, EnvConfig(max_steps=300))
+    np.testing.assert_array_equal(static.reset(None, take_row(tasks, 0)).arms.target_pos, tasks.target_pos[0])
+
+
+def take_row(tasks: Tasks, i: int) -> Tasks:
+    return jax.tree.map(lambda x: x[i], tasks)
+
+
+def _moved_tasks(tasks: Tasks, yaw: float, shift) -> Tasks:
+    """Every base and target rotated by ``yaw`` about the world z axis, then shifted."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    turn = np.asarray(yaw_quat(np.float64(yaw)), np.float64)
+
+    def pose(pos, quat):
+        return pos @ rot.T + np.array([*shift, 0.0]), np.asarray(quat_mul(jnp.asarray(turn), jnp.asarray(quat)), np.float64)
+
+    base_pos, base_quat = pose(tasks.base_pos, tasks.base_quat)
+    target_pos, target_quat = pose(tasks.target_pos, tasks.target_quat)
+    return tasks.replace(base_pos=base_pos, base_quat=base_quat, target_pos=target_pos, target_quat=target_quat)
+
+
+def random_policy(seed: int):
+    """Actions drawn from a fixed sequence (the state's step counter picks the draw)."""
+
+    def policy(state):
+        return jax.random.uniform(jax.random.fold_in(jax.random.key(seed), state.step), state.joints.shape, minval=-1, maxval=1)
+
+    return policy
+
+
+def test_moving_the_whole_scene_changes_no_observation_or_reward(generated):
+    tasks = take(generated, np.flatnonzero(generated.num_arms == 3)[:4])
+    tasks = with_slots(tasks, 3)
+    env = ReachingEnv(3, EnvConfig(max_steps=40))
+    run = rollout(env, 25, random_policy(3))
+    tolerance = jnp.asarray([0.3, 1.5])  # loose, so that reach rewards occur
+    _, here, _ = run(TaskBank.from_tasks(tasks, 3).tasks, tolerance)
+    _, there, _ = run(TaskBank.from_tasks(_moved_tasks(tasks, 2.1, (3.0, -1.5)), 3).tasks, tolerance)
+    np.testing.assert_allclose(here.obs, there.obs, atol=2e-4)
+    np.testing.assert_array_equal(here.obs_mask, there.obs_mask)
+    np.testing.assert_array_equal(here.reward, there.reward)
+    np.testing.assert_array_equal(here.collided, there.collided)
+    assert np.asarray(here.reward).any()
+
+
+def test_three_arm_task_is_identical_in_three_and_ten_slots(generated):
+    tasks = take(generated, np.flatnonzero(generated.num_arms == 3)[:4])
+    small, large = ReachingEnv(3, EnvConfig(max_steps=40)), ReachingEnv(10, EnvConfig(max_steps=40))
+    tolerance = jnp.asarray([0.3, 1.5])
+
+    def padded_policy(state):  # the same actions for the 3 arms, NaN garbage in empty slots
+        actions = random_policy(5)(state)[:3]
+        return jnp.concatenate([actions, jnp.full((7, 6), jnp.nan)])
+
+    _, s3, _ = rollout(small, 25, lambda state: random_policy(5)(state)[:3])(TaskBank.from_tasks(tasks, 3).tasks, tolerance)
+    _, s10, _ = rollout(large, 25, padded_policy)(TaskBank.from_tasks(tasks, 10).tasks, tolerance)
+    np.testing.assert_allclose(s10.obs[:, :, :3, -3:], s3.obs, atol=1e-5)
+    np.testing.assert_array_equal(s10.obs_mask[:, :, :3, -3:], s3.obs_mask)
+    assert not np.asarray(s10.obs_mask[:, :, :3, :-3]).any() and not np.asarray(s10.obs_mask[:, :, 3:]).any()
+    np.testing.assert_array_equal(s10.reward[..., :3], s3.reward)
+    assert not np.asarray(s10.reward[..., 3:]).any()
+    np.testing.assert_array_equal(s10.done, s3.done)
+    np.testing.assert_allclose(s10.joints[..., :3, :], s3.joints, atol=1e-6)
+    assert not np.asarray(s10.metrics["nonfinite_action"]).any()  # empty slots' actions are ignored
+
+
+def test_observation_self_last_and_radius(generated):
+    tasks = take(generated, np.flatnonzero(generated.num_arms >= 5)[:6])
+    bank = TaskBank.from_tasks(tasks, 10)
+    for radius in (1.7, 0.85, 0.0):
+        env = ReachingEnv(10, EnvConfig(neighbour_radius=radius))
+        state = jax.vmap(lambda task: env.reset(None, task))(bank.tasks)
+        mask, obs, active = np.asarray(state.obs_mask), np.asarray(state.obs), np.asarray(bank.tasks.active)
+        base = np.asarray(bank.tasks.base_pos)
+        dist = np.linalg.norm(base[:, :, None] - base[:, None], axis=-1)
+        within = ((dist <= radius) | np.eye(10, dtype=bool)) & active[:, :, None] & active[:, None, :]
+        np.testing.assert_array_equal(mask.sum(-1), within.sum(-1))  # nothing beyond the radius
+        assert np.all(mask[active][:, -1])  # the observing arm is the last element
+        np.testing.assert_allclose(obs[active][:, -1, 100:107], np.tile([0, 0, 0, 1.0, 0, 0, 0], (active.sum(), 1)), atol=1e-6)
+        np.testing.assert_allclose(obs[active][:, -1, 6:12], np.asarray(bank.tasks.start_joints)[active], atol=1e-6)
+        assert not mask[~active].any()
+
+
+def _facing_pair():
+    """Two arms 0.8 m apart facing each other, each driven to a point past the other's target."""
+    arm = load_arm()
+    bases = np.array([[[0.0, 0.0, 0.0], [0.8, 0.0, np.pi]]])
+    goal, error = solve_positions(arm, jnp.array([[0.55, 0.0, 0.35]]), jnp.asarray(arm.home[None], jnp.float32), iterations=80)
+    assert float(error[0]) < 1e-3
+    goal = np.repeat(np.asarray(goal, np.float64)[None], 2, axis=1)
+    start = np.repeat(arm.home[None, None], 2, axis=1)
+    return make_tasks(bases, start, goal)
+
+
+def test_arms_driven_into_each_other_collide():
+    env = ReachingEnv(2, EnvConfig(max_steps=120))
+    bank = TaskBank.from_tasks(_facing_pair(), 2)
+    final, states, _ = rollout(env, 120)(bank.tasks, jnp.asarray([0.02, 0.1]))
+    assert bool(final.done[0]) and not bool(final.success[0]) and not bool(final.truncated[0])
+    hit = int(np.argmax(np.asarray(states.collided).any(-1)[:, 0]))
+    collided = np.asarray(states.collided[hit, 0])
+    assert collided.any()
+    assert np.asarray(states.metrics["min_distance"][hit, 0])[collided].max() < 0
+    np.testing.assert_allclose(np.asarray(states.reward[hit, 0])[collided], -0.05, atol=1e-6)
+    # The episode is over: later steps change nothing and pay nothing.
+    assert not np.asarray(states.reward[hit + 1 :]).any()
+    np.testing.assert_array_equal(states.joints[-1], states.joints[hit])
+    assert int(final.step[0]) == hit + 1
+
+
+def test_thin_obstacle_is_not_tunnelled_through_in_one_step():
+    """Full-speed steps whose end points are both free but which pass through the other arm.
+
+    Checking only where a step ends would miss all of them; the swept check (no joint moving
+    more than 0.05 rad between checks) must flag every one that dips 5 mm or more into the
+    other arm. Shallower grazes can fall between checks (rate in benchmarks/RESULTS.md).
+    """
+    env, rng, n = ReachingEnv(2), np.random.default_rng(0), 24_576
+    angle, gap = rng.uniform(-np.pi, np.pi, n), rng.uniform(0.5, 0.9, n)
+    bases = np.zeros((n, 2, 3))
+    bases[:, 1, :2] = gap[:, None] * np.stack([np.cos(angle), np.sin(angle)], -1)
+    bases[..., 2] = rng.uniform(-np.pi, np.pi, (n, 2))
+    pos, quat = (jnp.asarray(x, jnp.float32) for x in base_pose_arrays(bases))
+    q0 = random_joints(rng, (n, 2)).astype(np.float32)
+    q1 = (q0 + rng.choice([-1.0, 1.0], (n, 2, 6)) * env.max_step).astype(np.float32)
+
+    distance = jax.jit(lambda pos, quat, q: scene_contacts(env.scene, pos, quat, q, jnp.ones(q.shape[:-1], bool)).min_distance.min(-1))
+    rows = np.flatnonzero(np.asarray((distance(pos, quat, q0) >= 0) & (distance(pos, quat, q1) >= 0)))
+    fractions = np.linspace(0.0, 1.0, 33)[1:-1, None, None, None]
+    path = (q0[rows] + fractions * (q1[rows] - q0[rows])).reshape(-1, 2, 6).astype(np.float32)
+    dense = distance(jnp.tile(pos[rows], (31, 1, 1)), jnp.tile(quat[rows], (31, 1, 1)), path).reshape(31, -1)
+    deep = rows[np.asarray(dense.min(0)) <= -0.005]
+    assert len(deep) >= 3  # the search finds pass-through steps
+    tasks = make_tasks(bases[deep], q0[deep].astype(np.float64), q0[deep].astype(np.float64))
+    state = jax.vmap(lambda task: env.reset(None, task))(TaskBank.from_tasks(tasks, 2).tasks)
+    stepped = jax.jit(jax.vmap(env.step))(state, env.joint_deltas_to_actions(q1[deep] - q0[deep]))
+    assert np.asarray(stepped.collided).any(-1).all()
+    assert np.asarray(stepped.done).all() and not np.asarray(stepped.success).any()
+    np.testing.assert_allclose(stepped.joints, q1[deep], atol=1e-5)
+
+
+def test_tolerance_is_state_and_reward_variants(generated):
+    tasks = TaskBank.from_tasks(take(generated, np.flatnonzero(generated.num_arms == 2)[:3]), 2).tasks
+    rewards = {}
+    for reward in ("team", "selfish"):
+        env = ReachingEnv(2, EnvConfig(reward=reward, max_steps=3))
+        step = jax.jit(jax.vmap(env.step))
+        zero = jnp.zeros((3, 2, 6))
+        tight = step(jax.vmap(lambda task: env.reset(None, task))(tasks), zero)
+        loose = step(jax.vmap(lambda task: env.reset(None, task, (10.0, 4.0)))(tasks), zero)
+        assert step._cache_size() == 1  # a new tolerance is data, not a new compilation
+        assert not np.asarray(tight.success).any() and np.asarray(loose.success).all()
+        rewards[reward] = np.asarray(loose.reward)
+        # Timeout: tight tolerance, no motion, max_steps = 3.
+        state = tight
+        for _ in range(3):
+            state = step(state, zero)
+        assert np.asarray(state.done).all() and np.asarray(state.truncated).all() and int(state.step[0]) == 3
+        assert not np.asarray(state.reward).any()  # the frozen episode pays nothing
+    np.testing.assert_allclose(rewards["team"], 1.01)
+    np.testing.assert_allclose(rewards["selfish"], 0.1)
+
+
+def test_auto_reset_walks_the_bank_and_counts_episodes(generated):
+    env = ReachingEnv(2, EnvConfig(max_steps=2))
+    bank = TaskBank.from_tasks(take(generated, np.flatnonzero(generated.num_arms <= 2)[:5]), 2)
+    wrapper = AutoReset(env, bank, order="sequential")
+    state = jax.jit(wrapper.reset, static_argnums=1)(jax.random.key(0), 3)
+    np.testing.assert_array_equal(state.env.task.task_id, [0, 1, 2])
+    step = jax.jit(wrapper.step)
+    zero = jnp.zeros((3, 2, 6))
+    state, stepped = step(state, zero)
+    assert not np.asarray(stepped.done).any() and int(state.stats.episodes.sum()) == 0
+    state, stepped = step(state, zero)
+    assert np.asarray(stepped.done).all() and np.asarray(stepped.step).tolist() == [2, 2, 2]
+    np.testing.assert_array_equal(state.env.task.task_id, [3, 4, 0])
+    np.testing.assert_array_equal(state.env.step, 0)
+    np.testing.assert_array_equal(state.env.joints, bank.tasks.start_joints[np.array([3, 4, 0])])
+    summary = state.stats.summary()
+    teams = np.asarray(bank.tasks.active).sum(-1)[:3]
+    assert summary["all"]["episodes"] == 3 and summary["all"]["timeout_rate"] == 1.0
+    assert {k: v["episodes"] for k, v in summary["by_team_size"].items()} == {int(t): int((teams == t).sum()) for t in set(teams)}
+    uniform = jax.jit(AutoReset(env, bank).reset, static_argnums=1)(jax.random.key(1), 64)
+    assert set(np.asarray(uniform.env.task.task_id).tolist()) == set(range(5))
+
+
+def test_replaying_recorded_actions_reproduces_the_episode(scripted, env1):
+    bank, final, _, actions = scripted
+    length = jnp.full(bank.size, 150)
+    start = jax.jit(jax.vmap(lambda task: env1.reset(None, task)))(bank.tasks)
+    replay = jax.jit(jax.vmap(lambda s, a, n: replay_actions(env1, s, a, n), in_axes=(0, 1, 0)))
+    replayed, valid = replay(start, actions, length)
+    np.testing.assert_array_equal(replayed.success[:, -1], final.success)
+    np.testing.assert_allclose(replayed.joints[:, -1], final.joints, atol=1e-6)
+    done_at = np.asarray(final.step)
+    np.testing.assert_array_equal(np.asarray(valid).sum(-1), done_at)  # valid up to the end of the episode
+    # A sequence cut short holds the arms still after its last action.
+    short, short_valid = replay(start, actions, jnp.full(bank.size, 2))
+    np.testing.assert_array_equal(np.asarray(short_valid).sum(-1), np.minimum(2, done_at))
+    np.testing.assert_allclose(short.joints[:, -1], short.joints[:, 1], atol=1e-7)
+
+
+def test_bad_input_is_rejected_with_clear_errors(generated, env1):
+    bank = teams_of(generated, 1, 1)
+    state = env1.reset(None, take_row(bank.tasks, 0))
+    step = jax.jit(env1.step)
+    with pytest.raises(ValueError, match=r"expected \(1, 6\)"):
+        step(state, jnp.zeros((1, 5)))
+    with pytest.raises(ValueError, match="4 arms, more than the 3 slots"):
+        TaskBank.from_tasks(take(generated, np.flatnonzero(generated.num_arms == 4)[:2]), 3)
+    with pytest.raises(ValueError, match="expects one task of 1 slots"):
+        env1.reset(None, take_row(TaskBank.from_tasks(take(generated, np.arange(2)), 10).tasks, 0))
+    with pytest.raises(ValueError, match="reward must be one of"):
+        EnvConfig(reward="greedy")
+    with pytest.raises(ValueError, match="target_quat"):
+        TaskBank.from_tasks(take(generated, np.arange(2)).replace(target_quat=np.zeros((2, 10, 4))), 10)
+    # NaN components hold their joint still and are flagged; the rest of the action applies.
+    action = jnp.array([[0.5, jnp.nan, 0.5, 0.5, jnp.inf, 0.5]])
+    stepped = step(state, action)
+    moved = np.asarray(stepped.joints - state.joints)[0]
+    assert moved[1] == 0 and moved[4] == 0 and np.all(moved[[0, 2, 3, 5]] != 0)
+    assert bool(stepped.metrics["nonfinite_action"][0])
