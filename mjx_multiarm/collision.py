@@ -11,6 +11,7 @@ check into one elementwise loop over all pairs of all scenes.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -131,11 +132,40 @@ def capsule_contacts(scene: Scene, capsules, active, chunk: int | None = None) -
       chunk: scenes checked at a time (a sequential ``lax.map`` over chunks). Default:
         :data:`CPU_CHUNK` for multi-arm scenes on the CPU backend (2-3x faster at large
         batches: the working set stays in cache), the whole batch at once otherwise.
+
+    Under ``jax.vmap`` the mapped axes join the leading dims: the kernel always sees the
+    whole batch of scenes at once (vectorized over scenes, chunked on CPU), however it is
+    called.
     """
+    return _batched_kernel(scene, chunk)(capsules, active)
+
+
+@functools.cache
+def _batched_kernel(scene: Scene, chunk: int | None):
+    """:func:`_contacts` with a batching rule that folds vmapped axes into its batch."""
+
+    @jax.custom_batching.custom_vmap
+    def kernel(capsules, active):
+        return _contacts(scene, capsules, active, chunk)
+
+    @kernel.def_vmap
+    def fold_batch(axis_size, in_batched, capsules, active):
+        capsules_batched, active_batched = in_batched
+        if not capsules_batched:
+            capsules = jnp.broadcast_to(capsules, (axis_size, *capsules.shape))
+        if not active_batched:
+            active = jnp.broadcast_to(active, (axis_size, *active.shape))
+        contacts = kernel(capsules, active)
+        return contacts, jax.tree.map(lambda _: True, contacts)
+
+    return kernel
+
+
+def _contacts(scene: Scene, capsules, active, chunk: int | None) -> Contacts:
     batch = capsules.shape[:-4]
     num_arms, num_caps = capsules.shape[-4:-2]
     capsules = capsules.reshape(-1, num_arms, num_caps, 2, 3)
-    active = jnp.reshape(active, (-1, num_arms))
+    active = jnp.broadcast_to(active, (*batch, num_arms)).reshape(-1, num_arms)
     n = capsules.shape[0]
     if chunk is None:
         chunk = CPU_CHUNK if jax.default_backend() == "cpu" and num_arms > 1 else n
