@@ -6,10 +6,13 @@ Public entry points:
 - :func:`build_scene`: the padded multi-arm MuJoCo scene and its JAX kernel constants.
 - :func:`forward_kinematics`, :func:`scene_contacts`, :func:`swept_contacts`: the batched
   JAX functions (jit/vmap-able) behind it.
+- :class:`ReachingEnv`, :class:`EnvConfig`: the multi-arm reaching environment
+  (``reset``/``step``); batching helpers in :mod:`mjx_multiarm.wrappers`.
 """
 
 from mjx_multiarm.api import ArmEvaluation, evaluate_arms
 from mjx_multiarm.collision import Contacts, num_substeps, scene_contacts, swept_contacts
+from mjx_multiarm.env import EnvConfig, ReachingEnv
 from mjx_multiarm.kinematics import ArmFrames, forward_kinematics
 from mjx_multiarm.scene import Scene, build_scene
 
@@ -17,6 +20,8 @@ __all__ = [
     "ArmEvaluation",
     "ArmFrames",
     "Contacts",
+    "EnvConfig",
+    "ReachingEnv",
     "Scene",
     "build_scene",
     "evaluate_arms",
