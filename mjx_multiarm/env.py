@@ -39,7 +39,7 @@ from flax import struct
 from mjx_multiarm.collision import SWEEP_RESOLUTION, num_substeps, swept_contacts
 from mjx_multiarm.kinematics import forward_kinematics
 from mjx_multiarm.observation import NEIGHBOUR_RADIUS, ArmSnapshot, observe
-from mjx_multiarm.robot import NUM_JOINTS
+from mjx_multiarm.robot import NUM_JOINTS, ArmModel
 from mjx_multiarm.scene import Scene, build_scene
 from mjx_multiarm.tasks.dynamic import PATH_SAMPLES, path_lengths, target_at
 from mjx_multiarm.tasks.types import Tasks
@@ -144,6 +144,12 @@ class State:
     metrics: dict
 
 
+def step_limits(arm: ArmModel, resolution: float = SWEEP_RESOLUTION) -> tuple[np.ndarray, int]:
+    """([6] largest joint motion per control step, swept-check substeps per step)."""
+    max_step = (arm.velocity_limit * CONTROL_PERIOD).astype(np.float32)
+    return max_step, num_substeps(np.zeros(NUM_JOINTS), max_step, resolution)
+
+
 class ReachingEnv:
     """Multi-arm reaching in a padded scene of ``max_arms`` slots."""
 
@@ -153,11 +159,10 @@ class ReachingEnv:
         self.max_arms = max_arms
         arm = self.scene.arm
         self.rewards = REWARDS[config.reward]
-        #: [6] largest joint motion per control step (rad).
-        self.max_step = (arm.velocity_limit * CONTROL_PERIOD).astype(np.float32)
+        #: [6] largest joint motion per control step (rad), swept-check substeps per step.
+        self.max_step, self.substeps = step_limits(arm, config.sweep_resolution)
         #: [6] radians of joint motion per unit of action.
         self.action_scale = self.max_step if config.action_scale is None else np.full(NUM_JOINTS, config.action_scale, np.float32)
-        self.substeps = num_substeps(np.zeros(NUM_JOINTS), self.max_step, config.sweep_resolution)
         self.joint_range = arm.joint_range.astype(np.float32)
 
     @property

@@ -18,8 +18,8 @@ import json
 import os
 import pathlib
 import sys
-import time
 
+from mjx_multiarm.progress import Progress
 from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
 from mjx_multiarm.tasks.generate import MODES, GenerationSpec, generate_dataset
 from mjx_multiarm.tasks.original_json import export_tasks, import_tasks
@@ -47,23 +47,6 @@ def parse_arms(text: str) -> tuple[int, ...]:
     if not counts or min(counts) < 1:
         raise argparse.ArgumentTypeError(f"--arms: team sizes must be >= 1; got {text!r}")
     return tuple(counts)
-
-
-class Progress:
-    """A one-line progress bar on stderr: done/total, rate, ETA."""
-
-    def __init__(self, total: int, unit: str):
-        self.total, self.unit, self.start = total, unit, time.perf_counter()
-
-    def update(self, done: int, new: int) -> None:
-        elapsed = time.perf_counter() - self.start
-        rate = new / elapsed if elapsed > 0 and new else 0.0
-        eta = (self.total - done) / rate if rate else float("nan")
-        bar = "#" * int(30 * done / self.total)
-        print(f"\r[{bar:<30}] {done}/{self.total} {self.unit} {rate:,.0f}/s ETA {eta:,.0f}s ", end="", file=sys.stderr, flush=True)
-
-    def close(self) -> None:
-        print(file=sys.stderr)
 
 
 def _counts(values, bins) -> dict[str, int]:

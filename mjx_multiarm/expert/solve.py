@@ -1,0 +1,68 @@
+"""Expert demonstrations for tasks: plan, decimate, and verify against the environment.
+
+A task's expert is the delta-joint step sequence of its decimated RRT-Connect plan
+(:mod:`mjx_multiarm.expert.planner`, :mod:`mjx_multiarm.expert.decimate`). Before it is
+accepted the sequence is executed the way the environment executes it (float32 joints,
+joint limits, the same swept check at the same substeps); the planner's edge checks sample
+other configurations, so a sub-millimetre graze can pass one check and fail the other. On
+such a disagreement the task is planned again with the next seed, up to
+``PlannerConfig.attempts`` times, so every stored expert replays without collision.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from mjx_multiarm.env import step_limits
+from mjx_multiarm.expert.decimate import ANGLE_TOLERANCE, path_to_deltas
+from mjx_multiarm.expert.planner import SOLVED, STATUSES, CollisionChecker, PlannerConfig, plan, task_seed
+from mjx_multiarm.robot import load_arm
+from mjx_multiarm.tasks.types import Tasks
+
+REPLAY_COLLISION = STATUSES.index("replay_collision")
+
+
+@dataclasses.dataclass
+class ExpertResult:
+    """One task's expert.
+
+    Attributes:
+      task_id: the task's dataset id.
+      status: index into :data:`~mjx_multiarm.expert.planner.STATUSES`.
+      deltas: [T, k, 6] float32 joint steps of the task's k arms ([0, k, 6] unless solved).
+      plan_s: planning time summed over attempts (s).
+      iterations: RRT-Connect iterations summed over attempts.
+      attempts: plans made.
+    """
+
+    task_id: int
+    status: int
+    deltas: np.ndarray
+    plan_s: float
+    iterations: int
+    attempts: int
+
+
+def solve_task(tasks: Tasks, index: int, config: PlannerConfig = PlannerConfig(), seed: int = 0,
+               angle_tolerance: float = ANGLE_TOLERANCE) -> ExpertResult:
+    """The expert of task ``index`` of numpy ``tasks`` (start -> goal)."""
+    arm = load_arm()
+    max_step, substeps = step_limits(arm)
+    active = np.asarray(tasks.active[index])
+    task_id = int(tasks.task_id[index])
+    checker = CollisionChecker(tasks.base_pos[index][active], tasks.base_quat[index][active], arm.joint_range, config.resolution)
+    start = np.asarray(tasks.start_joints[index])[active].ravel()
+    goal = np.asarray(tasks.goal_joints[index])[active].ravel()
+    empty = np.zeros((0, int(active.sum()), 6), np.float32)
+    total_s, total_iterations = 0.0, 0
+    for attempt in range(config.attempts):
+        result = plan(checker, start, goal, config, task_seed(seed + attempt, task_id))
+        total_s, total_iterations = total_s + result.plan_s, total_iterations + result.iterations
+        if result.status != SOLVED:
+            return ExpertResult(task_id, result.status, empty, total_s, total_iterations, attempt + 1)
+        deltas = path_to_deltas(result.path, max_step, angle_tolerance)
+        if checker.steps_free(start, deltas.reshape(len(deltas), -1), substeps):
+            return ExpertResult(task_id, SOLVED, deltas, total_s, total_iterations, attempt + 1)
+    return ExpertResult(task_id, REPLAY_COLLISION, empty, total_s, total_iterations, config.attempts)

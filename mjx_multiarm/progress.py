@@ -1,0 +1,24 @@
+"""A one-line progress bar for long command-line jobs."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+
+class Progress:
+    """A one-line progress bar on stderr: done/total, rate, ETA, and a note."""
+
+    def __init__(self, total: int, unit: str):
+        self.total, self.unit, self.start = total, unit, time.perf_counter()
+
+    def update(self, done: int, new: int, note: str = "") -> None:
+        """``done`` of ``total`` finished, ``new`` of them by this run (the rate counts those)."""
+        elapsed = time.perf_counter() - self.start
+        rate = new / elapsed if elapsed > 0 and new else 0.0
+        eta = (self.total - done) / rate if rate else float("nan")
+        bar = "#" * int(30 * done / max(self.total, 1))
+        print(f"\r[{bar:<30}] {done}/{self.total} {self.unit} {rate:,.1f}/s ETA {eta:,.0f}s {note} ", end="", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        print(file=sys.stderr)
