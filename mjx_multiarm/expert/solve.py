@@ -45,17 +45,11 @@ class ExpertResult:
     attempts: int
 
 
-def solve_task(tasks: Tasks, index: int, config: PlannerConfig = PlannerConfig(), seed: int = 0,
-               angle_tolerance: float = ANGLE_TOLERANCE) -> ExpertResult:
-    """The expert of task ``index`` of numpy ``tasks`` (start -> goal)."""
-    arm = load_arm()
-    max_step, substeps = step_limits(arm)
-    active = np.asarray(tasks.active[index])
-    task_id = int(tasks.task_id[index])
-    checker = CollisionChecker(tasks.base_pos[index][active], tasks.base_quat[index][active], arm.joint_range, config.resolution)
-    start = np.asarray(tasks.start_joints[index])[active].ravel()
-    goal = np.asarray(tasks.goal_joints[index])[active].ravel()
-    empty = np.zeros((0, int(active.sum()), 6), np.float32)
+def solve(checker: CollisionChecker, start, goal, config: PlannerConfig, seed: int, task_id: int = 0,
+          angle_tolerance: float = ANGLE_TOLERANCE) -> ExpertResult:
+    """Expert steps from composite ``start`` to ``goal`` ([6k] each) of ``checker``'s arms."""
+    max_step, substeps = step_limits(load_arm())
+    empty = np.zeros((0, checker.num_arms, 6), np.float32)
     total_s, total_iterations = 0.0, 0
     for attempt in range(config.attempts):
         result = plan(checker, start, goal, config, task_seed(seed + attempt, task_id))
@@ -66,3 +60,19 @@ def solve_task(tasks: Tasks, index: int, config: PlannerConfig = PlannerConfig()
         if checker.steps_free(start, deltas.reshape(len(deltas), -1), substeps):
             return ExpertResult(task_id, SOLVED, deltas, total_s, total_iterations, attempt + 1)
     return ExpertResult(task_id, REPLAY_COLLISION, empty, total_s, total_iterations, config.attempts)
+
+
+def task_checker(tasks: Tasks, index: int, resolution: float) -> CollisionChecker:
+    """The collision checker of the active arms of task ``index``."""
+    active = np.asarray(tasks.active[index])
+    return CollisionChecker(tasks.base_pos[index][active], tasks.base_quat[index][active], load_arm().joint_range, resolution)
+
+
+def solve_task(tasks: Tasks, index: int, config: PlannerConfig = PlannerConfig(), seed: int = 0,
+               angle_tolerance: float = ANGLE_TOLERANCE) -> ExpertResult:
+    """The expert of task ``index`` of numpy ``tasks`` (start -> goal)."""
+    active = np.asarray(tasks.active[index])
+    start = np.asarray(tasks.start_joints[index])[active].ravel()
+    goal = np.asarray(tasks.goal_joints[index])[active].ravel()
+    checker = task_checker(tasks, index, config.resolution)
+    return solve(checker, start, goal, config, seed, int(tasks.task_id[index]), angle_tolerance)
