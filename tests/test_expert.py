@@ -19,6 +19,7 @@ from mjx_multiarm.expert import precompute as precompute_module
 from mjx_multiarm.expert.decimate import corner_points, path_to_deltas
 from mjx_multiarm.expert.planner import STATUSES, PlannerConfig
 from mjx_multiarm.expert.precompute import precompute
+from mjx_multiarm.expert.replan import replan_episode
 from mjx_multiarm.expert.solve import solve_task
 from mjx_multiarm.expert.store import ExpertStore, ExpertTable, save_experts
 from mjx_multiarm.robot import load_arm
@@ -207,3 +208,12 @@ def test_ray_backend_matches_local(tmp_path, small_tasks):
     finally:
         ray.shutdown()
     _same_experts(local, distributed)
+
+
+def test_replanning_baseline_follows_moving_targets(small_tasks):
+    env = ReachingEnv(2, EnvConfig(dynamic_targets=True, max_steps=300))
+    results = [replan_episode(env, small_tasks, i, PlannerConfig(time_limit=20)) for i in (0, 3)]
+    assert all(r.success and not r.collided for r in results), results
+    assert all(r.plans >= 1 and r.plan_s > 0 and 0 < r.steps < 300 for r in results)
+    with pytest.raises(ValueError, match="dynamic_targets"):
+        replan_episode(ReachingEnv(2), small_tasks, 0)
