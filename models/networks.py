@@ -1,0 +1,136 @@
+"""The decentralized actor-critic (paper appendix), in Flax NNX.
+
+Every arm is evaluated by the same networks on its own observation: the sequence of 107-D
+elements of the arms it sees (masked elements first, itself last; see
+:mod:`mjx_multiarm.observation`). One forward pass takes any leading batch dims
+(environments, arms), so all arms of all environments go through at once.
+
+- :class:`SequenceEncoder`: a one-layer LSTM (107 -> 256, zero initial state) over the
+  sequence; masked elements leave the state untouched, and since they come first the
+  state is still exactly zero when the first real element arrives, so padding never
+  changes the encoding.
+- :class:`Actor`: encoder, then MLP 256 -> 128 -> 64 -> 12 with tanh after every layer: the
+  mean (6) and the log-variance (6, mapped from [-1, 1] onto [log 1e-8, log 0.1]) of a
+  diagonal Gaussian over the 6 delta-joint actions, as the original code. With
+  ``squash=True`` (standard SAC) the last layer is linear, the log-std is clipped to
+  [-20, 2], and samples are squashed by tanh.
+- :class:`Critic`: encoder, the action concatenated to its output, MLP -> 128 -> 64 -> 1.
+  :class:`TwinCritic` holds two independent ones.
+
+Linear layers start as PyTorch's (and the original's): weights uniform in
++-1/sqrt(fan_in), biases zero.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+from mjx_multiarm.observation import ELEMENT_SIZE
+from mjx_multiarm.robot import NUM_JOINTS
+
+HIDDEN = 256
+MLP_LAYERS = (128, 64)
+#: The original's bounds on the action variance.
+VARIANCE_BOUNDS = (1e-8, 0.1)
+LOG_STD_BOUNDS = (-20.0, 2.0)
+
+
+def _linear(inputs: int, outputs: int, rngs: nnx.Rngs) -> nnx.Linear:
+    init = jax.nn.initializers.variance_scaling(1.0 / 3.0, "fan_in", "uniform")
+    return nnx.Linear(inputs, outputs, kernel_init=init, bias_init=jax.nn.initializers.zeros, rngs=rngs)
+
+
+class SequenceEncoder(nnx.Module):
+    """LSTM encoding of a masked observation sequence: [..., L, 107], [..., L] -> [..., 256]."""
+
+    def __init__(self, rngs: nnx.Rngs, features: int = ELEMENT_SIZE, hidden: int = HIDDEN):
+        self.hidden = hidden
+        self.cell = nnx.OptimizedLSTMCell(features, hidden, rngs=rngs)
+
+    def __call__(self, obs, mask):
+        zeros = jnp.zeros((*obs.shape[:-2], self.hidden), obs.dtype)
+        carry = (zeros, zeros)
+        for t in range(obs.shape[-2]):  # short sequences (max_arms): unrolled
+            new, _ = self.cell(carry, obs[..., t, :])
+            keep = mask[..., t, None]
+            carry = tuple(jnp.where(keep, n, c) for n, c in zip(new, carry))
+        return carry[1]
+
+
+class MLP(nnx.Module):
+    """Linear layers with tanh between them (and after the last one if ``final_tanh``)."""
+
+    def __init__(self, sizes: tuple[int, ...], rngs: nnx.Rngs, final_tanh: bool):
+        self.layers = nnx.List([_linear(a, b, rngs) for a, b in zip(sizes[:-1], sizes[1:])])
+        self.final_tanh = final_tanh
+
+    def __call__(self, x):
+        for i, layer in enumerate(self.layers):
+            x = layer(x)
+            if i < len(self.layers) - 1 or self.final_tanh:
+                x = jnp.tanh(x)
+        return x
+
+
+class Actor(nnx.Module):
+    """Gaussian policy over delta-joint actions."""
+
+    def __init__(self, rngs: nnx.Rngs, squash: bool = False):
+        self.squash = squash
+        self.encoder = SequenceEncoder(rngs)
+        self.head = MLP((HIDDEN, *MLP_LAYERS, 2 * NUM_JOINTS), rngs, final_tanh=not squash)
+
+    def distribution(self, obs, mask):
+        """(mean [..., 6], log-std [..., 6])."""
+        out = self.head(self.encoder(obs, mask))
+        mean, raw = jnp.split(out, 2, axis=-1)
+        if self.squash:
+            return mean, jnp.clip(raw, *LOG_STD_BOUNDS)
+        low, high = (math.log(v) for v in VARIANCE_BOUNDS)
+        log_variance = low + (raw + 1.0) * 0.5 * (high - low)
+        return mean, 0.5 * log_variance
+
+    def __call__(self, obs, mask, key=None):
+        """(action, log-probability); the mean action (squashed if so) when ``key`` is None."""
+        mean, log_std = self.distribution(obs, mask)
+        if key is None:
+            action = jnp.tanh(mean) if self.squash else mean
+            return action, jnp.zeros(action.shape[:-1], action.dtype)
+        noise = jax.random.normal(key, mean.shape, mean.dtype)
+        sample = mean + jnp.exp(log_std) * noise
+        log_prob = jnp.sum(-0.5 * noise**2 - log_std - 0.5 * math.log(2 * math.pi), axis=-1)
+        if self.squash:
+            action = jnp.tanh(sample)
+            return action, log_prob - jnp.sum(jnp.log1p(-(action**2) + 1e-6), axis=-1)
+        return sample, log_prob
+
+    def log_prob(self, obs, mask, action):
+        """Log-density of ``action`` (unsquashed policies only: behaviour cloning)."""
+        mean, log_std = self.distribution(obs, mask)
+        z = (action - mean) * jnp.exp(-log_std)
+        return jnp.sum(-0.5 * z**2 - log_std - 0.5 * math.log(2 * math.pi), axis=-1)
+
+
+class Critic(nnx.Module):
+    """Q(observation, action) -> [...]."""
+
+    def __init__(self, rngs: nnx.Rngs):
+        self.encoder = SequenceEncoder(rngs)
+        self.head = MLP((HIDDEN + NUM_JOINTS, *MLP_LAYERS, 1), rngs, final_tanh=False)
+
+    def __call__(self, obs, mask, action):
+        return self.head(jnp.concatenate([self.encoder(obs, mask), action], axis=-1))[..., 0]
+
+
+class TwinCritic(nnx.Module):
+    """Two independent critics: (q1, q2)."""
+
+    def __init__(self, rngs: nnx.Rngs):
+        self.q1, self.q2 = Critic(rngs), Critic(rngs)
+
+    def __call__(self, obs, mask, action):
+        return self.q1(obs, mask, action), self.q2(obs, mask, action)

@@ -1,0 +1,56 @@
+"""Actor-critic networks: shapes, masking, padding invariance, distributions."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from models.networks import VARIANCE_BOUNDS, Actor, SequenceEncoder, TwinCritic
+
+
+def _sequences(key, batch, length, valid):
+    """Observation sequences [batch, length, 107] whose last ``valid`` elements are real."""
+    obs = jax.random.normal(key, (batch, length, 107))
+    mask = jnp.broadcast_to(jnp.arange(length) >= length - valid, (batch, length))
+    return obs, mask
+
+
+def test_padding_never_changes_the_encoding():
+    encoder = SequenceEncoder(nnx.Rngs(0))
+    obs, mask = _sequences(jax.random.key(1), 3, 10, 4)
+    garbage = obs.at[:, :6].set(1e3)  # masked elements hold anything
+    np.testing.assert_array_equal(encoder(garbage, mask), encoder(obs, mask))
+    short = encoder(obs[:, 6:], mask[:, 6:])  # the same 4 real elements without padding
+    np.testing.assert_allclose(encoder(obs, mask), short, atol=1e-6)
+    assert not np.allclose(encoder(obs, mask), encoder(obs, jnp.ones_like(mask)))  # real elements do count
+
+
+def test_actor_and_critic_shapes_and_any_leading_dims():
+    actor, critic = Actor(nnx.Rngs(0)), TwinCritic(nnx.Rngs(1))
+    obs = jax.random.normal(jax.random.key(0), (2, 5, 4, 4, 107))  # [devices?, envs, arms, seq, 107]
+    mask = jnp.ones((2, 5, 4, 4), bool)
+    action, log_prob = actor(obs, mask, jax.random.key(2))
+    assert action.shape == (2, 5, 4, 6) and log_prob.shape == (2, 5, 4)
+    q1, q2 = critic(obs, mask, action)
+    assert q1.shape == q2.shape == (2, 5, 4) and not np.allclose(q1, q2)
+    mean, _ = actor(obs, mask)
+    assert np.all(np.abs(mean) <= 1.0)  # tanh-bounded mean, as the original
+
+
+def test_log_probabilities_match_the_gaussian():
+    actor = Actor(nnx.Rngs(0))
+    obs, mask = _sequences(jax.random.key(3), 4, 3, 3)
+    action, log_prob = actor(obs, mask, jax.random.key(4))
+    np.testing.assert_allclose(actor.log_prob(obs, mask, action), log_prob, rtol=1e-4, atol=1e-4)
+    mean, log_std = actor.distribution(obs, mask)
+    variance = np.exp(2 * np.asarray(log_std))
+    assert np.all(variance >= VARIANCE_BOUNDS[0] * (1 - 1e-4)) and np.all(variance <= VARIANCE_BOUNDS[1] * (1 + 1e-4))
+    expected = -0.5 * ((action - mean) ** 2 / variance).sum(-1) - 0.5 * np.log(variance).sum(-1) - 3 * math.log(2 * math.pi)
+    np.testing.assert_allclose(log_prob, expected, rtol=1e-4, atol=1e-3)
+    squashed = Actor(nnx.Rngs(0), squash=True)
+    sample, _ = squashed(obs, mask, jax.random.key(5))
+    assert np.all(np.abs(sample) < 1.0)
