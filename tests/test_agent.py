@@ -1,0 +1,66 @@
+"""Replay buffer and SAC / behaviour-cloning updates."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from train.agent import SACConfig, bc_update, create_agent, critic_loss, sac_update, td_target
+from train.replay import ReplayBuffer, Transitions
+
+
+def _batch(key, n, length=3):
+    keys = jax.random.split(key, 4)
+    obs = jax.random.normal(keys[0], (n, length, 107))
+    mask = jnp.broadcast_to(jnp.arange(length) >= 1, (n, length))
+    return Transitions(obs, mask, jax.random.uniform(keys[1], (n, 6), minval=-1, maxval=1),
+                       jax.random.normal(keys[2], (n,)), jax.random.normal(keys[3], (n, length, 107)), mask,
+                       jnp.arange(n) % 5 == 0)
+
+
+def test_replay_buffer_packs_valid_rows_into_a_ring():
+    buffer = ReplayBuffer.create(capacity=8, sequence=3)
+    batch = _batch(jax.random.key(0), 6)
+    valid = jnp.array([True, False, True, True, False, True])
+    buffer = buffer.insert(batch, valid)
+    assert int(buffer.size) == 4 and int(buffer.position) == 4 and int(buffer.inserted) == 4
+    np.testing.assert_array_equal(buffer.data.reward[:4], batch.reward[valid])
+    buffer = buffer.insert(batch, jnp.ones(6, bool))  # wraps: rows 4..7 then 0..1
+    assert int(buffer.size) == 8 and int(buffer.position) == 2 and int(buffer.inserted) == 10
+    np.testing.assert_array_equal(buffer.data.reward[4:], batch.reward[:4])
+    np.testing.assert_array_equal(buffer.data.reward[:2], batch.reward[4:])
+    sample = buffer.sample(jax.random.key(1), 32)
+    assert sample.obs.shape == (32, 3, 107)
+    assert set(np.asarray(sample.reward).tolist()) <= set(np.asarray(buffer.data.reward).tolist())
+
+
+def test_one_sac_update_lowers_the_critic_loss_on_a_fixed_batch():
+    agent = create_agent(jax.random.key(0))
+    batch = _batch(jax.random.key(1), 64)
+    key = jax.random.key(2)
+    target = td_target(agent, batch, jax.random.split(key)[0])
+    before = critic_loss(agent, agent.critic, batch, target)[0]
+    updated, metrics = jax.jit(sac_update)(agent, batch, key)
+    after = critic_loss(updated, updated.critic, batch, target)[0]
+    assert float(after) < float(before)
+    np.testing.assert_allclose(metrics["critic_loss"], before, rtol=1e-5)
+    assert int(updated.updates) == 1 and float(metrics["alpha"]) == pytest.approx(1e-3)
+    # Target critics move by tau toward the critics.
+    expected = jax.tree.map(lambda c, t0: t0 + 1e-3 * (c - t0), updated.critic, agent.target_critic)
+    for got, want in zip(jax.tree.leaves(updated.target_critic), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(got, want, atol=1e-6)
+
+
+def test_learned_temperature_and_behaviour_cloning():
+    config = SACConfig(squash=True, learn_alpha=True)
+    agent = create_agent(jax.random.key(0), config)
+    batch = _batch(jax.random.key(1), 32)
+    updated, _ = sac_update(agent, batch, jax.random.key(2), config)
+    assert float(updated.log_alpha) != float(agent.log_alpha)
+    bc = jax.jit(bc_update)
+    first, metrics = bc(agent, batch)
+    for _ in range(20):
+        first, later = bc(first, batch)
+    assert float(later["bc_loss"]) < float(metrics["bc_loss"])

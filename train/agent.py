@@ -1,0 +1,134 @@
+"""Soft Actor-Critic updates of the shared decentralized actor-critic, as pure functions.
+
+The networks (:mod:`models.networks`) are Flax NNX modules; their parameters live in an
+:class:`Agent` pytree (with optimizer states and target critics) and the modules are
+rebuilt inside jitted functions with ``nnx.merge``, so a whole update is one compiled
+function. The original's choices are the default: fixed entropy temperature 0.001, the
+bounded-variance Gaussian without tanh squashing; ``squash=True, learn_alpha=True`` gives
+standard SAC (tanh-squashed samples, temperature tuned to a target entropy of -6).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import nnx, struct
+
+from models.networks import Actor, TwinCritic
+from mjx_multiarm.robot import NUM_JOINTS
+from train.replay import Transitions
+
+
+@dataclasses.dataclass(frozen=True)
+class SACConfig:
+    """SAC hyperparameters (defaults: the paper's appendix and the original code)."""
+
+    actor_lr: float = 5e-4
+    critic_lr: float = 1e-3
+    gamma: float = 0.99
+    tau: float = 1e-3
+    alpha: float = 1e-3  # initial (or fixed) entropy temperature
+    learn_alpha: bool = False
+    squash: bool = False
+    alpha_lr: float = 3e-4
+    target_entropy: float = -float(NUM_JOINTS)
+    bc_lr: float = 1e-3  # behaviour-cloning ablation
+
+
+@struct.dataclass
+class Agent:
+    """Parameters, target critics and optimizer states; the graph definitions are static."""
+
+    actor: nnx.State
+    critic: nnx.State
+    target_critic: nnx.State
+    actor_opt: optax.OptState
+    critic_opt: optax.OptState
+    log_alpha: jnp.ndarray
+    alpha_opt: optax.OptState
+    updates: jnp.ndarray
+    actor_def: nnx.GraphDef = struct.field(pytree_node=False)
+    critic_def: nnx.GraphDef = struct.field(pytree_node=False)
+
+    def policy(self) -> Actor:
+        """The actor module with this agent's parameters."""
+        return nnx.merge(self.actor_def, self.actor)
+
+    def critics(self) -> TwinCritic:
+        return nnx.merge(self.critic_def, self.critic)
+
+
+def _optimizers(config: SACConfig):
+    return optax.adam(config.actor_lr), optax.adam(config.critic_lr), optax.adam(config.alpha_lr)
+
+
+def create_agent(key, config: SACConfig = SACConfig()) -> Agent:
+    """Freshly initialized networks (weights as the original) and optimizers."""
+    actor_key, critic_key = jax.random.split(key)
+    actor_def, actor = nnx.split(Actor(nnx.Rngs(actor_key), squash=config.squash))
+    critic_def, critic = nnx.split(TwinCritic(nnx.Rngs(critic_key)))
+    actor_opt, critic_opt, alpha_opt = _optimizers(config)
+    log_alpha = jnp.asarray(math.log(config.alpha), jnp.float32)
+    return Agent(actor, critic, critic, actor_opt.init(actor), critic_opt.init(critic), log_alpha,
+                 alpha_opt.init(log_alpha), jnp.zeros((), jnp.int32), actor_def, critic_def)
+
+
+def td_target(agent: Agent, batch: Transitions, key, config: SACConfig = SACConfig()) -> jnp.ndarray:
+    """Soft TD target [N]: r + gamma (1 - terminal) (min target Q(s', a') - alpha log pi(a'|s'))."""
+    next_action, next_log_prob = agent.policy()(batch.next_obs, batch.next_mask, key)
+    target_q = jnp.minimum(*nnx.merge(agent.critic_def, agent.target_critic)(batch.next_obs, batch.next_mask, next_action))
+    continuing = 1.0 - batch.terminal.astype(jnp.float32)
+    return jax.lax.stop_gradient(batch.reward + config.gamma * continuing * (target_q - jnp.exp(agent.log_alpha) * next_log_prob))
+
+
+def critic_loss(agent: Agent, critic: nnx.State, batch: Transitions, target) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(twin-critic TD loss of parameters ``critic`` against ``target``, q1)."""
+    q1, q2 = nnx.merge(agent.critic_def, critic)(batch.obs, batch.mask, batch.action)
+    return jnp.mean((q1 - target) ** 2) + jnp.mean((q2 - target) ** 2), q1
+
+
+def sac_update(agent: Agent, batch: Transitions, key, config: SACConfig = SACConfig()) -> tuple[Agent, dict]:
+    """One gradient step of the critics, the actor (and the temperature if learned)."""
+    next_key, actor_key = jax.random.split(key)
+    alpha = jnp.exp(agent.log_alpha)
+    target = td_target(agent, batch, next_key, config)
+
+    def actor_loss(params):
+        action, log_prob = nnx.merge(agent.actor_def, params)(batch.obs, batch.mask, actor_key)
+        q = jnp.minimum(*agent.critics()(batch.obs, batch.mask, action))
+        return jnp.mean(alpha * log_prob - q), log_prob
+
+    (c_loss, q1), c_grads = jax.value_and_grad(lambda p: critic_loss(agent, p, batch, target), has_aux=True)(agent.critic)
+    (a_loss, log_prob), a_grads = jax.value_and_grad(actor_loss, has_aux=True)(agent.actor)
+    actor_opt, critic_opt, alpha_opt = _optimizers(config)
+    c_updates, critic_state = critic_opt.update(c_grads, agent.critic_opt, agent.critic)
+    a_updates, actor_state = actor_opt.update(a_grads, agent.actor_opt, agent.actor)
+    critic = optax.apply_updates(agent.critic, c_updates)
+    actor = optax.apply_updates(agent.actor, a_updates)
+    log_alpha, alpha_state = agent.log_alpha, agent.alpha_opt
+    if config.learn_alpha:
+        entropy_gap = jax.lax.stop_gradient(jnp.mean(log_prob) + config.target_entropy)
+        alpha_updates, alpha_state = alpha_opt.update(-entropy_gap, agent.alpha_opt, agent.log_alpha)
+        log_alpha = optax.apply_updates(agent.log_alpha, alpha_updates)
+    target_critic = optax.incremental_update(critic, agent.target_critic, config.tau)
+    new = agent.replace(actor=actor, critic=critic, target_critic=target_critic, actor_opt=actor_state,
+                        critic_opt=critic_state, log_alpha=log_alpha, alpha_opt=alpha_state, updates=agent.updates + 1)
+    metrics = {"critic_loss": c_loss, "actor_loss": a_loss, "q": jnp.mean(q1), "entropy": -jnp.mean(log_prob), "alpha": alpha}
+    return new, metrics
+
+
+def bc_update(agent: Agent, batch: Transitions, config: SACConfig = SACConfig()) -> tuple[Agent, dict]:
+    """Behaviour cloning (the paper's ablation): regress the actor's mean onto the actions."""
+
+    def loss(params):
+        mean, _ = nnx.merge(agent.actor_def, params)(batch.obs, batch.mask)
+        return jnp.mean(jnp.sum((mean - batch.action) ** 2, axis=-1))
+
+    value, grads = jax.value_and_grad(loss)(agent.actor)
+    optimizer = optax.adam(config.bc_lr)
+    updates, state = optimizer.update(grads, agent.actor_opt, agent.actor)
+    return agent.replace(actor=optax.apply_updates(agent.actor, updates), actor_opt=state, updates=agent.updates + 1), {"bc_loss": value}
