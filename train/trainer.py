@@ -1,0 +1,237 @@
+"""The jitted SAC training iteration with expert demonstrations on failure and a curriculum.
+
+One call of :meth:`Trainer.iteration` (compiled once) does, in the style of Brax's SAC:
+
+1. ``rollout_steps`` steps of ``num_envs`` auto-resetting environments with actions sampled
+   from the shared policy (every arm of every environment in one forward pass); every
+   active arm's transition enters the replay buffer;
+2. every episode that ends is recorded for the curriculum (which tightens the tolerance of
+   new episodes when the policy graduates); every failed episode whose task has an expert
+   joins a queue of failed tasks;
+3. up to ``expert_replays`` queued failed tasks are re-run from their start with the
+   expert's stored actions (:func:`mjx_multiarm.wrappers.replay_actions`) and the expert's
+   experience, with the environment's rewards, enters the buffer beside the failed attempt;
+4. ``updates_per_iteration`` SAC updates on uniform batches from the buffer once it holds
+   ``warmup`` transitions (behaviour cloning on expert transitions only with ``bc=True``).
+
+Everything stays on device; the host only reads metrics between iterations.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from mjx_multiarm.env import ReachingEnv, State
+from mjx_multiarm.expert.store import ExpertStore
+from mjx_multiarm.wrappers import AutoReset, BatchState, TaskBank, replay_actions
+from train.agent import Agent, SACConfig, bc_update, create_agent, sac_update
+from train.curriculum import Curriculum
+from train.replay import ReplayBuffer, Transitions
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Sizes of the training loop (see the module docstring)."""
+
+    num_envs: int = 64
+    rollout_steps: int = 16
+    updates_per_iteration: int = 16
+    batch_size: int = 256
+    buffer_size: int = 50_000
+    warmup: int = 2_000
+    expert: bool = True
+    expert_replays: int = 8
+    failed_queue: int = 256
+    bc: bool = False
+    curriculum: bool = True
+    start_level: int = 0
+    sac: SACConfig = SACConfig()
+
+    def __post_init__(self):
+        for name in ("num_envs", "rollout_steps", "updates_per_iteration", "batch_size", "buffer_size", "expert_replays", "failed_queue"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.bc and not self.expert:
+            raise ValueError("behaviour cloning (bc) learns from expert demonstrations: it needs expert=True")
+
+
+@struct.dataclass
+class Demonstrations:
+    """Expert actions of the bank's tasks on device: [N, T, max_arms, 6] and lengths [N]."""
+
+    actions: jnp.ndarray
+    lengths: jnp.ndarray
+
+    @classmethod
+    def from_store(cls, store: ExpertStore, bank: TaskBank, env: ReachingEnv, max_steps: int) -> Demonstrations:
+        """The experts of the bank's tasks (length 0 where a task has none or it failed)."""
+        known = set(int(t) for t in store.task_ids[store.solved])
+        ids = [int(t) for t in bank.task_ids]
+        deltas = np.zeros((len(ids), max_steps, env.max_arms, 6), np.float32)
+        lengths = np.zeros(len(ids), np.int32)
+        rows = [i for i, t in enumerate(ids) if t in known]
+        if rows:
+            deltas[rows], lengths[rows] = store.padded([ids[i] for i in rows], max_steps, env.max_arms)
+        return cls(jnp.asarray(env.joint_deltas_to_actions(deltas)), jnp.asarray(lengths))
+
+
+@struct.dataclass
+class FailedQueue:
+    """A ring of bank rows of failed tasks waiting for their expert replay."""
+
+    rows: jnp.ndarray
+    head: jnp.ndarray
+    count: jnp.ndarray
+
+    @classmethod
+    def create(cls, size: int) -> FailedQueue:
+        zero = jnp.zeros((), jnp.int32)
+        return cls(jnp.zeros(size, jnp.int32), zero, zero)
+
+    def push(self, flags, rows) -> FailedQueue:
+        """Append ``rows`` [B] where ``flags`` [B]; the oldest entries are overwritten when full."""
+        size = self.rows.shape[0]
+        offset = jnp.cumsum(flags) - 1
+        index = jnp.where(flags, (self.head + self.count + offset) % size, size)
+        new = flags.sum().astype(jnp.int32)
+        overflow = jnp.maximum(self.count + new - size, 0)
+        return FailedQueue(self.rows.at[index].set(rows, mode="drop"), (self.head + overflow) % size, jnp.minimum(self.count + new, size))
+
+    def pop(self, n: int) -> tuple[FailedQueue, jnp.ndarray, jnp.ndarray]:
+        """(queue, rows [n], valid [n]): the ``n`` oldest entries (fewer may be valid)."""
+        size = self.rows.shape[0]
+        take = jnp.minimum(self.count, n)
+        rows = self.rows[(self.head + jnp.arange(n)) % size]
+        return FailedQueue(self.rows, (self.head + take) % size, self.count - take), rows, jnp.arange(n) < take
+
+
+@struct.dataclass
+class TrainState:
+    """Everything a training run carries from one iteration to the next (checkpointed)."""
+
+    agent: Agent
+    envs: BatchState
+    buffer: ReplayBuffer
+    curriculum: Curriculum
+    failed: FailedQueue
+    rng: jax.Array
+    env_steps: jnp.ndarray
+    expert_steps: jnp.ndarray
+
+
+def arm_transitions(before_obs, before_mask, actions, after: State) -> tuple[Transitions, jnp.ndarray]:
+    """Per-arm transitions of a batch of stepped environments, flattened over [..., arms].
+
+    ``before_obs`` [..., A, A, 107] / ``before_mask`` [..., A, A] are the observations the
+    actions [..., A, 6] were taken from; ``after`` the stepped states. Returns the
+    transitions and their validity (active arms).
+    """
+    terminal = jnp.broadcast_to((after.done & ~after.truncated)[..., None], after.reward.shape)
+
+    def flat(x, trailing):
+        return x.reshape(-1, *x.shape[x.ndim - trailing :])
+
+    transitions = Transitions(
+        obs=flat(before_obs, 2), mask=flat(before_mask, 1), action=flat(actions, 1), reward=after.reward.reshape(-1),
+        next_obs=flat(after.obs, 2), next_mask=flat(after.obs_mask, 1), terminal=terminal.reshape(-1),
+    )
+    return transitions, after.task.active.reshape(-1)
+
+
+class Trainer:
+    """Builds and runs the training iteration for one environment, task bank and expert set."""
+
+    def __init__(self, env: ReachingEnv, bank: TaskBank, demonstrations: Demonstrations | None, config: TrainConfig = TrainConfig()):
+        if config.expert and demonstrations is None:
+            raise ValueError("expert demonstrations are enabled but none were given")
+        self.env, self.bank, self.demos, self.config = env, bank, demonstrations, config
+        self.autoreset = AutoReset(env, bank)
+        self.iteration = jax.jit(self._iteration)
+
+    def init(self, key) -> TrainState:
+        """A fresh run: networks, environments at curriculum level ``start_level``, empty buffer."""
+        agent_key, env_key, key = jax.random.split(key, 3)
+        config = self.config
+        curriculum = Curriculum.start(config.start_level)
+        tolerance = curriculum.tolerance if config.curriculum else jnp.asarray(self.env.config.tolerance, jnp.float32)
+        envs = jax.jit(self.autoreset.reset, static_argnums=1)(env_key, config.num_envs, tolerance)
+        buffer = ReplayBuffer.create(config.buffer_size, self.env.max_arms)
+        zero = jnp.zeros((), jnp.int32)
+        return TrainState(create_agent(agent_key, config.sac), envs, buffer, curriculum, FailedQueue.create(config.failed_queue),
+                          key, zero, zero)
+
+    def _rollout(self, state: TrainState, key) -> tuple[TrainState, dict]:
+        config = self.config
+
+        def one_step(carry, step_key):
+            state = carry
+            envs = state.envs
+            actions, _ = state.agent.policy()(envs.env.obs, envs.env.obs_mask, step_key)
+            envs, stepped = self.autoreset.step(envs, actions)
+            buffer = state.buffer
+            if not config.bc:
+                transitions, valid = arm_transitions(state.envs.env.obs, state.envs.env.obs_mask, actions, stepped)
+                buffer = buffer.insert(transitions, valid)
+            ended = stepped.done
+            failed = state.failed
+            if config.expert:
+                rows = stepped.task.task_id
+                failed = failed.push(ended & ~stepped.success & (self.demos.lengths[rows] > 0), rows)
+            curriculum = state.curriculum.record(ended, stepped.success) if config.curriculum else state.curriculum
+            if config.curriculum:
+                envs = envs.replace(tolerance=curriculum.tolerance)
+            active = stepped.task.active.sum(-1)
+            state = state.replace(envs=envs, buffer=buffer, failed=failed, curriculum=curriculum,
+                                  env_steps=state.env_steps + config.num_envs)
+            return state, {"ended": ended.sum(), "successes": (ended & stepped.success).sum(), "arm_steps": active.sum()}
+
+        state, stats = jax.lax.scan(one_step, state, jax.random.split(key, config.rollout_steps))
+        return state, jax.tree.map(jnp.sum, stats)
+
+    def _expert_replays(self, state: TrainState) -> TrainState:
+        failed, rows, valid_task = state.failed.pop(self.config.expert_replays)
+        tasks = self.bank.take(rows)
+        tolerance = state.envs.tolerance
+        start = jax.vmap(lambda task: self.env.reset(None, task, tolerance))(tasks)
+        actions, lengths = self.demos.actions[rows], jnp.where(valid_task, self.demos.lengths[rows], 0)
+        states, valid = jax.vmap(lambda s, a, n: replay_actions(self.env, s, a, n))(start, actions, lengths)
+        before_obs = jnp.concatenate([start.obs[:, None], states.obs[:, :-1]], axis=1)
+        before_mask = jnp.concatenate([start.obs_mask[:, None], states.obs_mask[:, :-1]], axis=1)
+        transitions, arm_valid = arm_transitions(before_obs, before_mask, actions, states)
+        arm_valid = arm_valid & jnp.repeat(valid.reshape(-1), self.env.max_arms)
+        return state.replace(buffer=state.buffer.insert(transitions, arm_valid), failed=failed,
+                             expert_steps=state.expert_steps + valid.sum().astype(jnp.int32))
+
+    def _updates(self, state: TrainState, key) -> tuple[TrainState, dict]:
+        config = self.config
+
+        def update(agent, update_key):
+            sample_key, sac_key = jax.random.split(update_key)
+            batch = state.buffer.sample(sample_key, config.batch_size)
+            if config.bc:
+                return bc_update(agent, batch, config.sac)
+            agent, metrics = sac_update(agent, batch, sac_key, config.sac)
+            return agent, metrics
+
+        def run(agent):
+            agent, metrics = jax.lax.scan(update, agent, jax.random.split(key, config.updates_per_iteration))
+            return agent, jax.tree.map(jnp.mean, metrics)
+
+        shapes = jax.eval_shape(run, state.agent)[1]
+        skip = lambda agent: (agent, jax.tree.map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), shapes))  # noqa: E731
+        agent, metrics = jax.lax.cond(state.buffer.size >= config.warmup, run, skip, state.agent)
+        return state.replace(agent=agent), metrics
+
+    def _iteration(self, state: TrainState) -> tuple[TrainState, dict]:
+        rng, rollout_key, update_key = jax.random.split(state.rng, 3)
+        state, rollout = self._rollout(state.replace(rng=rng), rollout_key)
+        if self.config.expert:
+            state = self._expert_replays(state)
+        state, learning = self._updates(state, update_key)
+        return state, {**rollout, **learning, "level": state.curriculum.level, "window_success": state.curriculum.success_rate,
+                       "buffer": state.buffer.size, "queued_failures": state.failed.count}
