@@ -1,0 +1,64 @@
+"""The jitted training iteration: rollouts, expert replays on failure only, updates."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from mjx_multiarm.env import EnvConfig, ReachingEnv
+from mjx_multiarm.expert.solve import solve_task
+from mjx_multiarm.expert.store import ExpertStore, ExpertTable, save_experts
+from mjx_multiarm.tasks.types import take, with_slots
+from mjx_multiarm.wrappers import TaskBank
+from train.trainer import Demonstrations, FailedQueue, TrainConfig, Trainer
+
+
+@pytest.fixture(scope="module")
+def one_arm(generated, tmp_path_factory):
+    """Four 1-arm tasks in one slot and their expert file."""
+    tasks = with_slots(take(generated, np.flatnonzero(generated.num_arms == 1)[:4]), 1)
+    path = tmp_path_factory.mktemp("experts") / "one_arm.experts"
+    save_experts(path, ExpertTable.from_results([solve_task(tasks, i) for i in range(4)]))
+    return tasks, ExpertStore(path)
+
+
+def _trainer(tasks, store, tolerance, expert=True):
+    env = ReachingEnv(1, EnvConfig(max_steps=4, tolerance=tolerance))
+    bank = TaskBank.from_tasks(tasks, 1)
+    config = TrainConfig(num_envs=4, rollout_steps=4, updates_per_iteration=2, batch_size=16, buffer_size=2048,
+                         warmup=8, expert=expert, expert_replays=2, curriculum=False)
+    return Trainer(env, bank, Demonstrations.from_store(store, bank, env, 48), config)
+
+
+def test_expert_experience_enters_only_for_failed_episodes(one_arm):
+    tasks, store = one_arm
+    # Tight tolerance, 4-step episodes: every episode fails by timeout and queues its expert.
+    failing = _trainer(tasks, store, (1e-4, 1e-4))
+    state = failing.init(jax.random.key(0))
+    state, metrics = failing.iteration(state)
+    assert int(metrics["ended"]) == 4 and int(metrics["successes"]) == 0
+    assert int(state.expert_steps) > 0  # two queued failures were replayed
+    assert int(state.buffer.inserted) == 16 + int(state.expert_steps)  # 4 envs x 4 steps + expert steps
+    assert int(state.failed.count) == 2  # the other two wait for the next iteration
+    assert np.isfinite(float(metrics["critic_loss"]))  # past warm-up: updates ran
+    # Loose tolerance: every episode succeeds at its first step, nothing is queued or replayed.
+    succeeding = _trainer(tasks, store, (10.0, 4.0))
+    state = succeeding.init(jax.random.key(0))
+    state, metrics = succeeding.iteration(state)
+    assert int(metrics["successes"]) == int(metrics["ended"]) == 16
+    assert int(state.expert_steps) == 0 and int(state.failed.count) == 0
+    # Without experts, failures are not queued.
+    plain = _trainer(tasks, store, (1e-4, 1e-4), expert=False)
+    state, _ = plain.iteration(plain.init(jax.random.key(0)))
+    assert int(state.expert_steps) == 0 and int(state.failed.count) == 0
+
+
+def test_failed_queue_is_a_bounded_fifo():
+    queue = FailedQueue.create(4)
+    queue = queue.push(np.array([True, False, True]), np.array([7, 8, 9]))
+    queue, rows, valid = queue.pop(3)
+    assert rows[valid].tolist() == [7, 9] and int(queue.count) == 0
+    queue = queue.push(np.ones(6, bool), np.arange(6))  # overflow keeps the newest four
+    queue, rows, valid = queue.pop(4)
+    assert rows[valid].tolist() == [2, 3, 4, 5]
