@@ -122,7 +122,7 @@ class State:
       truncated: it ended by timeout only.
       step: control steps taken.
       tolerance: [2] (eps_p m, eps_r rad).
-      target_lengths: [A, samples] arc-length tables of moving targets ([A, 0] when static).
+      target_lengths: [A, samples] arc-length tables of moving targets ([A, 1] zeros when static).
       metrics: ``min_distance`` [A] smallest signed distance (m) during the last step;
         ``nonfinite_action`` [A] the arm's action held a NaN or inf.
     """
@@ -213,7 +213,7 @@ class ReachingEnv:
         if self.config.dynamic_targets:
             lengths = path_lengths(self.scene.arm, task.base_pos, task.base_quat, task.dynamic_start_joints, task.goal_joints, PATH_SAMPLES)
         else:
-            lengths = jnp.zeros((self.max_arms, 0), jnp.float32)
+            lengths = jnp.zeros((self.max_arms, 1), jnp.float32)  # unused; not empty, so checkpoints can hold it
         step = jnp.zeros((), jnp.int32)
         arms = self._snapshot(task, task.start_joints, lengths, step)
         obs, obs_mask = self._observe(task, arms, arms)
