@@ -23,22 +23,7 @@ from mjx_multiarm.env import EnvConfig, ReachingEnv
 from mjx_multiarm.scripted import ik_actions
 from mjx_multiarm.tasks.__main__ import parse_arms
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
-from mjx_multiarm.wrappers import EpisodeStats, TaskBank
-
-
-def make_rollout(env: ReachingEnv, steps: int):
-    """A jitted function running every task of a device batch for ``steps`` control steps."""
-
-    @jax.jit
-    def rollout(tasks):
-        start = jax.vmap(lambda task: env.reset(None, task))(tasks)
-
-        def step(state, _):
-            return jax.vmap(env.step)(state, jax.vmap(lambda s: ik_actions(env, s))(state)), None
-
-        return jax.lax.scan(step, start, None, steps)[0]
-
-    return rollout
+from mjx_multiarm.wrappers import EpisodeStats, TaskBank, make_episodes
 
 
 def main(argv=None) -> None:
@@ -58,12 +43,12 @@ def main(argv=None) -> None:
 
     env = ReachingEnv(spec.slots, EnvConfig(max_steps=args.steps))
     bank = TaskBank.from_tasks(tasks, spec.slots)
-    rollout = make_rollout(env, args.steps)
+    rollout = make_episodes(env, lambda states, _: jax.vmap(lambda s: ik_actions(env, s))(states), args.steps)
     start = time.perf_counter()
-    jax.block_until_ready(rollout(bank.tasks))
+    jax.block_until_ready(rollout(bank.tasks, None))
     compile_s = time.perf_counter() - start
     start = time.perf_counter()
-    final = jax.block_until_ready(rollout(bank.tasks))
+    final = jax.block_until_ready(rollout(bank.tasks, None))
     run_s = time.perf_counter() - start
     arm_steps = int(np.asarray(bank.tasks.active).sum()) * args.steps
     print(f"compile {compile_s:.1f} s, run {run_s:.2f} s on {jax.devices()[0].device_kind}: {arm_steps / run_s:,.0f} arm-steps/s")

@@ -187,3 +187,23 @@ def replay_actions(env: ReachingEnv, state: State, actions, length) -> tuple[Sta
     steps = jnp.arange(actions.shape[0])
     _, (states, valid) = jax.lax.scan(one, state, (steps, actions))
     return states, valid
+
+
+def make_episodes(env: ReachingEnv, policy, steps: int):
+    """A jitted function running a batch of tasks from their start for ``steps`` control steps.
+
+    ``policy(states, params) -> actions [B, max_arms, 6]`` sees the batched states; the
+    returned function maps (tasks [B], params) to the final states (finished episodes stay
+    frozen at their end, see :class:`~mjx_multiarm.env.ReachingEnv`).
+    """
+
+    @jax.jit
+    def episodes(tasks: Tasks, params):
+        start = jax.vmap(lambda task: env.reset(None, task))(tasks)
+
+        def step(states, _):
+            return jax.vmap(env.step)(states, policy(states, params)), None
+
+        return jax.lax.scan(step, start, None, steps)[0]
+
+    return episodes

@@ -1,0 +1,323 @@
+"""Train the decentralized multi-arm planner with SAC, expert demonstrations and a curriculum.
+
+    python -m train.sac                                   # default CPU preset, embedded defaults
+    python -m train.sac --preset paper --run-dir runs/paper
+    python -m train.sac --arms 1-4 --minutes 60 --run-dir runs/four
+    python -m train.sac --resume runs/four                # continue a killed run exactly
+    python -m train.sac --tasks train.npz --experts train.experts --run-dir runs/big
+
+Without ``--tasks`` the run generates its training and evaluation tasks and plans their
+experts itself (a small set; seconds to a minute), so it needs no precompute step. The
+run directory receives ``config.json``, ``tasks.npz`` / ``eval_tasks.npz``, the expert
+file, ``metrics.csv``, ``learning_curve.png``, ``checkpoints/`` (Orbax, the latest 3) and
+``summary.json``. A run stops after ``--steps`` environment steps or ``--minutes`` of
+training, whichever comes first, then evaluates the policy's mean actions on the
+evaluation tasks at 2 cm / 0.1 rad.
+
+Ablations (paper section 5): ``--no-expert``, ``--bc`` (behaviour cloning on the expert
+data only), ``--reward selfish``, ``--observe self`` (individualistic observations).
+``--sac standard`` uses tanh-squashed samples and a learned temperature instead of the
+original's bounded-variance Gaussian with fixed temperature 0.001.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import os
+import pathlib
+import sys
+import time
+
+import jax
+import numpy as np
+
+from mjx_multiarm.env import EVAL_TOLERANCE, EnvConfig, ReachingEnv
+from mjx_multiarm.expert.planner import PlannerConfig
+from mjx_multiarm.expert.precompute import precompute
+from mjx_multiarm.expert.store import ExpertStore
+from mjx_multiarm.tasks.__main__ import parse_arms
+from mjx_multiarm.tasks.dataset import atomic_write, load_tasks, save_tasks
+from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
+from mjx_multiarm.wrappers import TaskBank
+from train.agent import SACConfig
+from train.checkpoint import Checkpoints
+from train.curriculum import LEVELS
+from train.evaluation import evaluate_policy
+from train.trainer import Demonstrations, TrainConfig, Trainer
+
+
+@dataclasses.dataclass(frozen=True)
+class Preset:
+    """A named run configuration (every field can be overridden on the command line)."""
+
+    arms: tuple[int, ...]
+    train_tasks: int
+    eval_tasks: int
+    episode_steps: int
+    expert_steps: int  # longest expert sequence kept (longer ones are cut)
+    num_envs: int
+    rollout_steps: int
+    updates_per_iteration: int
+    batch_size: int
+    buffer_size: int
+    warmup: int
+    expert_replays: int
+    minutes: float
+    steps: int
+
+
+PRESETS = {
+    # About 10-15 minutes on a 2-core CPU, single-arm tasks.
+    "cpu": Preset(arms=(1,), train_tasks=512, eval_tasks=128, episode_steps=200, expert_steps=64, num_envs=64,
+                  rollout_steps=16, updates_per_iteration=16, batch_size=256, buffer_size=50_000, warmup=2_000,
+                  expert_replays=8, minutes=10.0, steps=10**9),
+    # The paper's hyperparameters (appendix): batch 4096, warm-up 20,000, replay 50,000, 1-4 arms.
+    "paper": Preset(arms=(1, 2, 3, 4), train_tasks=20_000, eval_tasks=1_000, episode_steps=500, expert_steps=128,
+                    num_envs=1024, rollout_steps=16, updates_per_iteration=10, batch_size=4096, buffer_size=50_000,
+                    warmup=20_000, expert_replays=64, minutes=10**9, steps=700_000_000),
+    # For tests and smoke checks: seconds.
+    "tiny": Preset(arms=(1,), train_tasks=8, eval_tasks=4, episode_steps=20, expert_steps=48, num_envs=4, rollout_steps=4,
+                   updates_per_iteration=2, batch_size=16, buffer_size=2048, warmup=8, expert_replays=2, minutes=1.0, steps=400),
+}
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m train.sac", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--preset", choices=sorted(PRESETS), default="cpu", help="named configuration (default cpu)")
+    parser.add_argument("--run-dir", type=pathlib.Path, default=None, help="output directory (default runs/<preset>-<time>)")
+    parser.add_argument("--resume", type=pathlib.Path, default=None, help="continue the run in this directory from its latest checkpoint")
+    parser.add_argument("--steps", type=int, help="stop after this many environment steps")
+    parser.add_argument("--minutes", type=float, help="stop after this much training time")
+    parser.add_argument("--arms", type=parse_arms, help="team sizes of generated tasks, e.g. 1 or 1-4")
+    parser.add_argument("--tasks", type=pathlib.Path, help="training task dataset (.npz) instead of generated tasks")
+    parser.add_argument("--experts", type=pathlib.Path, help="expert file of --tasks (planned into the run dir if absent)")
+    parser.add_argument("--eval-tasks", type=pathlib.Path, help="evaluation task dataset (default: generated)")
+    for name in ("train_tasks", "eval_count", "num_envs", "batch_size", "buffer_size", "warmup", "episode_steps"):
+        parser.add_argument("--" + name.replace("_", "-"), dest=name, type=int, help=f"override the preset's {name.replace('_', ' ')}")
+    parser.add_argument("--no-expert", action="store_true", help="ablation: no expert demonstrations")
+    parser.add_argument("--bc", action="store_true", help="ablation: behaviour cloning on the expert data only")
+    parser.add_argument("--reward", choices=["team", "selfish"], default="team", help="reward (selfish: ablation)")
+    parser.add_argument("--observe", choices=["neighbours", "self"], default="neighbours", help="self: individualistic ablation")
+    parser.add_argument("--sac", choices=["original", "standard"], default="original", help="policy parametrization and temperature")
+    parser.add_argument("--no-curriculum", action="store_true", help="train at 2 cm / 0.1 rad from the start")
+    parser.add_argument("--checkpoint-minutes", type=float, default=5.0, help="minutes between checkpoints (default 5)")
+    parser.add_argument("--no-buffer-checkpoint", action="store_true", help="leave the replay buffer out of checkpoints")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes planning experts (default: all cores)")
+    parser.add_argument("--json", action="store_true", help="end with one JSON line")
+    return parser
+
+
+def _settings(args) -> dict:
+    """The run's configuration as JSON data (stored in config.json, reused by --resume)."""
+    preset = dataclasses.asdict(PRESETS[args.preset])
+    overrides = {"train_tasks": args.train_tasks, "eval_tasks": args.eval_count, "num_envs": args.num_envs,
+                 "batch_size": args.batch_size, "buffer_size": args.buffer_size, "warmup": args.warmup,
+                 "episode_steps": args.episode_steps, "steps": args.steps, "minutes": args.minutes,
+                 "arms": list(args.arms) if args.arms else None}
+    preset.update({k: v for k, v in overrides.items() if v is not None})
+    preset["arms"] = list(preset["arms"])
+    return {
+        "preset": args.preset, **preset, "seed": args.seed, "expert": not args.no_expert, "bc": args.bc, "reward": args.reward,
+        "observe": args.observe, "sac": args.sac, "curriculum": not args.no_curriculum, "tasks": str(args.tasks) if args.tasks else None,
+        "experts": str(args.experts) if args.experts else None, "eval_tasks_file": str(args.eval_tasks) if args.eval_tasks else None,
+        "with_buffer": not args.no_buffer_checkpoint, "checkpoint_minutes": args.checkpoint_minutes,
+    }
+
+
+def _generated_tasks(path: pathlib.Path, arms, count: int, seed: int):
+    if not path.exists():
+        spec = GenerationSpec(count=count, arm_counts=tuple(arms), mode="static", seed=seed, max_arms=max(arms), chunk_size=256)
+        chunks = [generate_chunk(spec, c) for c in range(spec.num_chunks)]
+        from mjx_multiarm.tasks.types import concatenate
+
+        save_tasks(path, concatenate(chunks), {"generated_for": "train.sac", "seed": seed})
+    return load_tasks(path)[0]
+
+
+def _prepare(run_dir: pathlib.Path, settings: dict, workers: int, log):
+    """Training and evaluation tasks, the expert file, environments."""
+    arms = settings["arms"]
+    if settings["tasks"]:
+        tasks = load_tasks(settings["tasks"])[0]
+        tasks_path = pathlib.Path(settings["tasks"])
+    else:
+        tasks_path = run_dir / "tasks.npz"
+        log(f"generating {settings['train_tasks']} training tasks ({','.join(map(str, arms))} arms)...")
+        tasks = _generated_tasks(tasks_path, arms, settings["train_tasks"], settings["seed"])
+    if settings["eval_tasks_file"]:
+        eval_tasks = load_tasks(settings["eval_tasks_file"])[0]
+    else:
+        eval_tasks = _generated_tasks(run_dir / "eval_tasks.npz", sorted(set(tasks.num_arms.tolist())), settings["eval_tasks"],
+                                      settings["seed"] + 10_000)
+    max_arms = max(int(tasks.num_arms.max()), int(eval_tasks.num_arms.max()))
+    store = None
+    if settings["expert"]:
+        experts = pathlib.Path(settings["experts"]) if settings["experts"] else run_dir / "tasks.experts"
+        if not experts.exists():
+            log(f"planning experts for {tasks.num_tasks} tasks ({workers} processes)...")
+            precompute(tasks_path, experts, PlannerConfig(time_limit=30.0), seed=settings["seed"], workers=workers)
+        store = ExpertStore(experts)
+    env_config = EnvConfig(max_steps=settings["episode_steps"], reward=settings["reward"],
+                           neighbour_radius=0.0 if settings["observe"] == "self" else EnvConfig().neighbour_radius)
+    env = ReachingEnv(max_arms, env_config)
+    eval_env = ReachingEnv(max_arms, dataclasses.replace(env_config, tolerance=EVAL_TOLERANCE))
+    bank = TaskBank.from_tasks(tasks, max_arms)
+    demos = Demonstrations.from_store(store, bank, env, settings["expert_steps"]) if store else None
+    return env, eval_env, bank, TaskBank.from_tasks(eval_tasks, max_arms), demos
+
+
+def _train_config(settings: dict) -> TrainConfig:
+    standard = settings["sac"] == "standard"
+    return TrainConfig(
+        num_envs=settings["num_envs"], rollout_steps=settings["rollout_steps"], updates_per_iteration=settings["updates_per_iteration"],
+        batch_size=settings["batch_size"], buffer_size=settings["buffer_size"], warmup=settings["warmup"], expert=settings["expert"],
+        expert_replays=settings["expert_replays"], bc=settings["bc"], curriculum=settings["curriculum"],
+        sac=SACConfig(squash=standard, learn_alpha=standard),
+    )
+
+
+def _plot(rows: list[dict], path: pathlib.Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [r["env_steps"] for r in rows]
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    top.plot(steps, [r["window_success"] for r in rows], label="success, latest 100 episodes (current level)")
+    top.set_ylabel("success rate")
+    top.set_ylim(-0.02, 1.02)
+    top.legend(loc="lower right")
+    bottom.plot(steps, [r["level"] + 1 for r in rows], color="tab:orange")
+    bottom.set_ylabel("curriculum level")
+    bottom.set_xlabel("environment steps")
+    fig.suptitle("train.sac learning curve")
+    fig.tight_layout()
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    plt.close(fig)
+
+
+def _json_safe(value):
+    """NaN (e.g. steps to success without a success) as null: strict JSON."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, float) and value != value:
+        return None
+    return value
+
+
+def _log(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def main(argv=None) -> None:
+    args = _parser().parse_args(argv)
+    if args.bc and args.no_expert:
+        sys.exit("error: --bc learns from the expert demonstrations; it cannot be combined with --no-expert")
+    if args.resume:
+        run_dir = args.resume
+        config_file = run_dir / "config.json"
+        if not config_file.is_file():
+            sys.exit(f"error: {run_dir}: not a run directory (no config.json)")
+        settings = json.loads(config_file.read_text())
+        if args.steps is not None:
+            settings["steps"] = args.steps
+        if args.minutes is not None:
+            settings["minutes"] = args.minutes
+    else:
+        settings = _settings(args)
+        run_dir = args.run_dir or pathlib.Path("runs") / f"{args.preset}-{time.strftime('%Y%m%d-%H%M%S')}"
+        if (run_dir / "config.json").exists():
+            sys.exit(f"error: {run_dir} already holds a run; use --resume {run_dir} or another --run-dir")
+        run_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write(run_dir / "config.json", lambda f: f.write(json.dumps(settings, indent=2, sort_keys=True).encode()))
+
+    try:
+        env, eval_env, bank, eval_bank, demos = _prepare(run_dir, settings, args.workers, _log)
+    except (ValueError, FileNotFoundError) as error:
+        sys.exit(f"error: {error}")
+    trainer = Trainer(env, bank, demos, _train_config(settings))
+    checkpoints = Checkpoints(run_dir / "checkpoints", keep=3, with_buffer=settings["with_buffer"])
+    state = trainer.init(jax.random.key(settings["seed"]))
+    elapsed, iteration = 0.0, 0
+    if args.resume:
+        try:
+            state, meta = checkpoints.restore(state)
+        except (ValueError, FileNotFoundError) as error:
+            sys.exit(f"error: {error}")
+        elapsed, iteration = meta["train_seconds"], meta["iteration"]
+        _log(f"resumed {run_dir} at iteration {iteration}, {int(state.env_steps):,} environment steps")
+
+    metrics_file = run_dir / "metrics.csv"
+    rows = list(csv.DictReader(metrics_file.open())) if metrics_file.exists() and args.resume else []
+    rows = [{k: float(v) for k, v in r.items()} for r in rows if float(r["iteration"]) <= iteration]
+    _log(f"run directory {run_dir}; compiling the training step...")
+    budget_s = settings["minutes"] * 60.0
+    last_checkpoint = last_print = time.perf_counter()
+    start_steps, start_elapsed, start_clock = int(state.env_steps), elapsed, time.perf_counter() - elapsed
+
+    def save():
+        meta = {"iteration": iteration, "train_seconds": elapsed, "env_steps": int(state.env_steps),
+                "updates": int(state.agent.updates), "curriculum_level": int(state.curriculum.level), "with_buffer": settings["with_buffer"]}
+        checkpoints.save(iteration, state, meta)
+        header = list(rows[0]) if rows else []
+        atomic_write(metrics_file, lambda f: f.write((",".join(header) + "\n" + "".join(",".join(str(r[k]) for k in header) + "\n" for r in rows)).encode()))
+
+    first = True
+    while int(state.env_steps) < settings["steps"] and elapsed < budget_s:
+        clock = time.perf_counter()
+        state, metrics = trainer.iteration(state)
+        metrics = jax.device_get(metrics)
+        iteration += 1
+        if first:  # the first call compiles: keep it out of the training clock
+            start_clock, first = start_clock + (time.perf_counter() - clock), False
+            start_steps = int(state.env_steps)
+        elapsed = time.perf_counter() - start_clock
+        steps = int(state.env_steps)
+        rows.append({"iteration": iteration, "env_steps": steps, "updates": int(state.agent.updates), "seconds": round(elapsed, 3),
+                     "level": int(metrics["level"]), "window_success": float(metrics["window_success"]),
+                     "episodes": int(metrics["ended"]), "successes": int(metrics["successes"]),
+                     **{k: float(metrics[k]) for k in ("critic_loss", "actor_loss", "q", "entropy") if k in metrics},
+                     **({"bc_loss": float(metrics["bc_loss"])} if "bc_loss" in metrics else {})})
+        now = time.perf_counter()
+        if now - last_print > 2.0:
+            rate = (steps - start_steps) / max(elapsed - start_elapsed, 1e-9)
+            remaining = min((settings["steps"] - steps) / max(rate, 1e-9), budget_s - elapsed)
+            eps_p, eps_r = LEVELS[int(metrics["level"])]
+            _log(f"\r{steps:>11,} env steps {rate:8,.0f}/s | {int(state.agent.updates):>8,} updates | level {int(metrics['level']) + 1}/{len(LEVELS)} "
+                 f"({100 * eps_p:.1f} cm, {eps_r:.2f} rad) success {float(metrics['window_success']):5.1%} | ETA {remaining / 60:5.1f} min")
+            last_print = now
+        if now - last_checkpoint > settings["checkpoint_minutes"] * 60:
+            save()
+            last_checkpoint = now
+    save()
+    checkpoints.close()
+    if rows:
+        _plot(rows, run_dir / "learning_curve.png")
+    _log("evaluating the policy's mean actions at 2 cm / 0.1 rad...")
+    evaluation = evaluate_policy(state.agent, eval_env, eval_bank)
+    env_rate = (int(state.env_steps) - start_steps) / max(elapsed - start_elapsed, 1e-9)
+    summary = {
+        "env_steps": int(state.env_steps), "updates": int(state.agent.updates), "expert_steps": int(state.expert_steps),
+        "train_seconds": elapsed, "env_steps_per_s": env_rate, "updates_per_s": int(state.agent.updates) / max(elapsed, 1e-9),
+        "success_rate": evaluation["all"]["success_rate"], "evaluation": evaluation,
+        "curriculum_level": int(state.curriculum.level) + 1, "checkpoint": str(checkpoints.directory / str(iteration)),
+        "run_dir": str(run_dir),
+    }
+    summary = _json_safe(summary)
+    atomic_write(run_dir / "summary.json", lambda f: f.write(json.dumps(summary, indent=2).encode()))
+    for team, row in sorted(evaluation["by_team_size"].items()):
+        print(f"{team} arm(s): success {row['success_rate']:.1%}  collision {row['collision_rate']:.1%}  timeout {row['timeout_rate']:.1%} "
+              f"({row['episodes']} tasks)")
+    print(f"{summary['env_steps']:,} env steps, {summary['updates']:,} updates in {elapsed / 60:.1f} min; "
+          f"curriculum level {summary['curriculum_level']}; results in {run_dir}")
+    if args.json:
+        print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()
