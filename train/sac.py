@@ -214,6 +214,11 @@ def _log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
+def _progress(line: str) -> None:
+    """Rewrite the live progress line on stderr."""
+    print(line, end="", file=sys.stderr, flush=True)
+
+
 def main(argv=None) -> None:
     args = _parser().parse_args(argv)
     if args.bc and args.no_expert:
@@ -288,12 +293,13 @@ def main(argv=None) -> None:
             rate = (steps - start_steps) / max(elapsed - start_elapsed, 1e-9)
             remaining = min((settings["steps"] - steps) / max(rate, 1e-9), budget_s - elapsed)
             eps_p, eps_r = LEVELS[int(metrics["level"])]
-            _log(f"\r{steps:>11,} env steps {rate:8,.0f}/s | {int(state.agent.updates):>8,} updates | level {int(metrics['level']) + 1}/{len(LEVELS)} "
+            _progress(f"\r{steps:>11,} env steps {rate:8,.0f}/s | {int(state.agent.updates):>8,} updates | level {int(metrics['level']) + 1}/{len(LEVELS)} "
                  f"({100 * eps_p:.1f} cm, {eps_r:.2f} rad) success {float(metrics['window_success']):5.1%} | ETA {remaining / 60:5.1f} min")
             last_print = now
         if now - last_checkpoint > settings["checkpoint_minutes"] * 60:
             save()
             last_checkpoint = now
+    _log("")
     save()
     checkpoints.close()
     if rows:
