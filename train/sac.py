@@ -107,6 +107,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-buffer-checkpoint", action="store_true", help="leave the replay buffer out of checkpoints")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes planning experts (default: all cores)")
+    parser.add_argument("--devices", type=int, default=None, help="data-parallel over this many local devices (default: all)")
     parser.add_argument("--json", action="store_true", help="end with one JSON line")
     return parser
 
@@ -245,7 +246,11 @@ def main(argv=None) -> None:
         env, eval_env, bank, eval_bank, demos = _prepare(run_dir, settings, args.workers, _log)
     except (ValueError, FileNotFoundError) as error:
         sys.exit(f"error: {error}")
-    trainer = Trainer(env, bank, demos, _train_config(settings))
+    devices = jax.local_devices()[: args.devices] if args.devices else jax.local_devices()
+    try:
+        trainer = Trainer(env, bank, demos, _train_config(settings), devices)
+    except ValueError as error:
+        sys.exit(f"error: {error}")
     checkpoints = Checkpoints(run_dir / "checkpoints", keep=3, with_buffer=settings["with_buffer"])
     state = trainer.init(jax.random.key(settings["seed"]))
     elapsed, iteration = 0.0, 0
@@ -254,6 +259,7 @@ def main(argv=None) -> None:
             state, meta = checkpoints.restore(state)
         except (ValueError, FileNotFoundError) as error:
             sys.exit(f"error: {error}")
+        state = trainer.place(state)
         elapsed, iteration = meta["train_seconds"], meta["iteration"]
         _log(f"resumed {run_dir} at iteration {iteration}, {int(state.env_steps):,} environment steps")
 

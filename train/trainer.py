@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from mjx_multiarm.env import ReachingEnv, State
 from mjx_multiarm.expert.store import ExpertStore
@@ -146,12 +147,31 @@ def arm_transitions(before_obs, before_mask, actions, after: State) -> tuple[Tra
 class Trainer:
     """Builds and runs the training iteration for one environment, task bank and expert set."""
 
-    def __init__(self, env: ReachingEnv, bank: TaskBank, demonstrations: Demonstrations | None, config: TrainConfig = TrainConfig()):
+    def __init__(self, env: ReachingEnv, bank: TaskBank, demonstrations: Demonstrations | None, config: TrainConfig = TrainConfig(),
+                 devices=None):
+        """``devices``: data-parallel over these (default: one device). The environments are
+        split along their batch axis across the devices and the SAC batches too; parameters,
+        optimizer states and the replay buffer are replicated, and XLA inserts the
+        gradient all-reduce."""
         if config.expert and demonstrations is None:
             raise ValueError("expert demonstrations are enabled but none were given")
+        devices = list(devices) if devices is not None else jax.devices()[:1]
+        for name in ("num_envs", "batch_size"):
+            if getattr(config, name) % len(devices):
+                raise ValueError(f"TrainConfig.{name}={getattr(config, name)} must be divisible by the {len(devices)} devices")
         self.env, self.bank, self.demos, self.config = env, bank, demonstrations, config
+        self.mesh = Mesh(np.array(devices), ("data",))
         self.autoreset = AutoReset(env, bank)
         self.iteration = jax.jit(self._iteration)
+
+    def place(self, state: TrainState) -> TrainState:
+        """``state`` laid out over the devices: environments split, everything else replicated."""
+        return jax.device_put(state, self._shardings(state))
+
+    def _shardings(self, state: TrainState):
+        replicated, split = NamedSharding(self.mesh, PartitionSpec()), NamedSharding(self.mesh, PartitionSpec("data"))
+        shardings = jax.tree.map(lambda _: replicated, state)
+        return shardings.replace(envs=shardings.envs.replace(env=jax.tree.map(lambda _: split, state.envs.env)))
 
     def init(self, key) -> TrainState:
         """A fresh run: networks, environments at curriculum level ``start_level``, empty buffer."""
@@ -162,8 +182,9 @@ class Trainer:
         envs = jax.jit(self.autoreset.reset, static_argnums=1)(env_key, config.num_envs, tolerance)
         buffer = ReplayBuffer.create(config.buffer_size, self.env.max_arms)
         zero = jnp.zeros((), jnp.int32)
-        return TrainState(create_agent(agent_key, config.sac), envs, buffer, curriculum, FailedQueue.create(config.failed_queue),
-                          key, zero, zero)
+        state = TrainState(create_agent(agent_key, config.sac), envs, buffer, curriculum, FailedQueue.create(config.failed_queue),
+                           key, zero, zero)
+        return self.place(state)
 
     def _rollout(self, state: TrainState, key) -> tuple[TrainState, dict]:
         config = self.config
@@ -213,6 +234,7 @@ class Trainer:
         def update(agent, update_key):
             sample_key, sac_key = jax.random.split(update_key)
             batch = state.buffer.sample(sample_key, config.batch_size)
+            batch = jax.lax.with_sharding_constraint(batch, NamedSharding(self.mesh, PartitionSpec("data")))
             if config.bc:
                 return bc_update(agent, batch, config.sac)
             agent, metrics = sac_update(agent, batch, sac_key, config.sac)
@@ -233,5 +255,6 @@ class Trainer:
         if self.config.expert:
             state = self._expert_replays(state)
         state, learning = self._updates(state, update_key)
+        state = jax.lax.with_sharding_constraint(state, self._shardings(state))
         return state, {**rollout, **learning, "level": state.curriculum.level, "window_success": state.curriculum.success_rate,
                        "buffer": state.buffer.size, "queued_failures": state.failed.count}
