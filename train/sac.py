@@ -41,6 +41,7 @@ from mjx_multiarm.expert.store import ExpertStore
 from mjx_multiarm.tasks.__main__ import parse_arms
 from mjx_multiarm.tasks.dataset import atomic_write, load_tasks, save_tasks
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
+from mjx_multiarm.tasks.types import concatenate
 from mjx_multiarm.wrappers import TaskBank
 from train.agent import SACConfig
 from train.checkpoint import Checkpoints
@@ -133,8 +134,6 @@ def _generated_tasks(path: pathlib.Path, arms, count: int, seed: int):
     if not path.exists():
         spec = GenerationSpec(count=count, arm_counts=tuple(arms), mode="static", seed=seed, max_arms=max(arms), chunk_size=256)
         chunks = [generate_chunk(spec, c) for c in range(spec.num_chunks)]
-        from mjx_multiarm.tasks.types import concatenate
-
         save_tasks(path, concatenate(chunks), {"generated_for": "train.sac", "seed": seed})
     return load_tasks(path)[0]
 
