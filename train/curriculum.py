@@ -13,6 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from train.replay import ring_write
+
 #: (eps_p m, eps_r rad) per level, level 0 first.
 LEVELS = np.array(
     [(0.10, 0.20), (0.08, 0.16), (0.06, 0.14), (0.04, 0.10), (0.036, 0.09), (0.032, 0.08), (0.028, 0.07),
@@ -50,10 +52,7 @@ class Curriculum:
 
     def record(self, ended, success) -> Curriculum:
         """Add the episodes flagged in ``ended`` [B] (their ``success`` [B]); graduate if due."""
-        offset = jnp.cumsum(ended) - 1
-        index = jnp.where(ended, (self.position + offset) % WINDOW, WINDOW)
-        outcomes = self.outcomes.at[index].set(success, mode="drop")
-        new = ended.sum().astype(jnp.int32)
+        outcomes, new = ring_write(self.outcomes, success, ended, self.position)
         state = Curriculum(self.level, outcomes, jnp.minimum(self.count + new, WINDOW), (self.position + new) % WINDOW)
         graduate = (state.count >= WINDOW) & (state.success_rate >= GRADUATION_RATE) & (self.level < len(LEVELS) - 1)
         promoted = Curriculum.start().replace(level=self.level + 1)

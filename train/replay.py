@@ -18,6 +18,15 @@ from mjx_multiarm.observation import ELEMENT_SIZE
 from mjx_multiarm.robot import NUM_JOINTS
 
 
+def ring_write(ring, values, flags, start):
+    """``ring`` [S, ...] with ``values`` [M, ...] written where ``flags`` [M], in order, at
+    slots ``start``, ``start + 1``, ... (mod S); returns (ring, rows written)."""
+    size = ring.shape[0]
+    flags = flags.astype(bool)
+    index = jnp.where(flags, (start + jnp.cumsum(flags) - 1) % size, size)  # out of range: dropped
+    return ring.at[index].set(values.astype(ring.dtype), mode="drop"), flags.sum().astype(jnp.int32)
+
+
 @struct.dataclass
 class Transitions:
     """A batch of per-arm transitions; leading dim [N]."""
@@ -59,10 +68,7 @@ class ReplayBuffer:
         rows = valid.shape[0]
         if rows > self.capacity:
             raise ValueError(f"inserting {rows} rows at once into a buffer of {self.capacity}")
-        valid = valid.astype(bool)
-        offset = jnp.cumsum(valid) - 1
-        index = jnp.where(valid, (self.position + offset) % self.capacity, self.capacity)  # out of range: dropped
-        data = jax.tree.map(lambda buf, new: buf.at[index].set(new.astype(buf.dtype), mode="drop"), self.data, batch)
+        data = jax.tree.map(lambda buf, new: ring_write(buf, new, valid, self.position)[0], self.data, batch)
         count = valid.sum().astype(jnp.int32)
         return ReplayBuffer(data, (self.position + count) % self.capacity, jnp.minimum(self.size + count, self.capacity),
                             self.inserted + count)

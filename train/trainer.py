@@ -32,7 +32,7 @@ from mjx_multiarm.expert.store import ExpertStore
 from mjx_multiarm.wrappers import AutoReset, BatchState, TaskBank, replay_actions
 from train.agent import Agent, SACConfig, bc_update, create_agent, sac_update
 from train.curriculum import Curriculum
-from train.replay import ReplayBuffer, Transitions
+from train.replay import ReplayBuffer, Transitions, ring_write
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,11 +97,9 @@ class FailedQueue:
     def push(self, flags, rows) -> FailedQueue:
         """Append ``rows`` [B] where ``flags`` [B]; the oldest entries are overwritten when full."""
         size = self.rows.shape[0]
-        offset = jnp.cumsum(flags) - 1
-        index = jnp.where(flags, (self.head + self.count + offset) % size, size)
-        new = flags.sum().astype(jnp.int32)
+        queued, new = ring_write(self.rows, rows, flags, self.head + self.count)
         overflow = jnp.maximum(self.count + new - size, 0)
-        return FailedQueue(self.rows.at[index].set(rows, mode="drop"), (self.head + overflow) % size, jnp.minimum(self.count + new, size))
+        return FailedQueue(queued, (self.head + overflow) % size, jnp.minimum(self.count + new, size))
 
     def pop(self, n: int) -> tuple[FailedQueue, jnp.ndarray, jnp.ndarray]:
         """(queue, rows [n], valid [n]): the ``n`` oldest entries (fewer may be valid)."""
