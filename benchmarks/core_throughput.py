@@ -125,18 +125,28 @@ def cpu_name() -> str:
         return platform.machine()
 
 
+def add_timing_arguments(parser: argparse.ArgumentParser, steps: int, steps_help: str) -> None:
+    """The options every throughput benchmark shares: device, steps per rollout, timing, JSON."""
+    parser.add_argument("--device", choices=["cpu", "gpu"], default=None, help="default: JAX's default device")
+    parser.add_argument("--steps", type=int, default=steps, help=steps_help)
+    parser.add_argument("--seconds", type=float, default=2.0, help="minimum timing per measurement")
+    parser.add_argument("--json", action="store_true", help="print one JSON line per measurement")
+
+
+def selected_device(args) -> jax.Device:
+    """The device named by ``--device`` (default: JAX's default device)."""
+    return jax.devices(args.device)[0] if args.device else jax.devices()[0]
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--arms", default="1,4,10", help="comma-separated team sizes (slots = arms)")
     parser.add_argument("--batch", default="1,64,1024", help="comma-separated batch sizes (scenes)")
-    parser.add_argument("--device", choices=["cpu", "gpu"], default=None, help="default: JAX's default device")
     parser.add_argument("--impl", choices=sorted(IMPLEMENTATIONS), default="ours")
-    parser.add_argument("--steps", type=int, default=20, help="motions per jitted rollout")
-    parser.add_argument("--seconds", type=float, default=2.0, help="minimum timing per measurement")
-    parser.add_argument("--json", action="store_true", help="print one JSON line per measurement")
+    add_timing_arguments(parser, 20, "motions per jitted rollout")
     args = parser.parse_args(argv)
 
-    device = jax.devices(args.device)[0] if args.device else jax.devices()[0]
+    device = selected_device(args)
     print(f"# {cpu_name()}, {device.device_kind}, jax {jax.__version__}")
     print(f"{'arms':>4} {'batch':>6} {'arm-evals/s':>14} {'scenes/s':>12}")
     for num_arms in (int(a) for a in args.arms.split(",")):

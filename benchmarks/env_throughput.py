@@ -23,7 +23,7 @@ import time
 
 import jax
 import numpy as np
-from core_throughput import cpu_name
+from core_throughput import add_timing_arguments, cpu_name, selected_device
 
 from mjx_multiarm.env import EnvConfig, ReachingEnv
 from mjx_multiarm.scripted import ik_actions
@@ -84,14 +84,11 @@ def main(argv=None):
     parser.add_argument("--arms", default="1,4,10", help="comma-separated team sizes")
     parser.add_argument("--slots", type=int, default=None, help="arm slots of the compiled scene (default: the team size)")
     parser.add_argument("--batch", default="1,64,1024", help="comma-separated batch sizes (environments)")
-    parser.add_argument("--device", choices=["cpu", "gpu"], default=None, help="default: JAX's default device")
     parser.add_argument("--policy", choices=["random", "scripted"], default="random", help="uniform random actions or the IK controller")
-    parser.add_argument("--steps", type=int, default=50, help="environment steps per jitted rollout")
-    parser.add_argument("--seconds", type=float, default=2.0, help="minimum timing per measurement")
-    parser.add_argument("--json", action="store_true", help="print one JSON line per measurement")
+    add_timing_arguments(parser, 50, "environment steps per jitted rollout")
     args = parser.parse_args(argv)
 
-    device = jax.devices(args.device)[0] if args.device else jax.devices()[0]
+    device = selected_device(args)
     print(f"# {cpu_name()}, {device.device_kind}, jax {jax.__version__}, policy {args.policy}")
     print(f"{'arms':>4} {'slots':>5} {'batch':>6} {'arm-steps/s':>13} {'env-steps/s':>12} {'episodes/step':>13}")
     for num_arms in (int(a) for a in args.arms.split(",")):
