@@ -31,7 +31,7 @@ from mjx_multiarm.scene import build_scene
 
 #: Outcomes of a planning attempt (stored as their index).
 STATUSES = ("solved", "start_in_collision", "goal_in_collision", "out_of_bounds", "iteration_limit", "time_limit", "replay_collision")
-SOLVED = 0
+SOLVED, START_IN_COLLISION, GOAL_IN_COLLISION, OUT_OF_BOUNDS, ITERATION_LIMIT, TIME_LIMIT, REPLAY_COLLISION = range(len(STATUSES))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -170,7 +170,8 @@ def plan(checker: CollisionChecker, start, goal, config: PlannerConfig = Planner
     clock = time.perf_counter()
     start, goal = np.asarray(start, np.float64), np.asarray(goal, np.float64)
     endpoints = checker.collided(np.stack([start, goal]))
-    for status, config_ok in ((3, checker.in_bounds(start) and checker.in_bounds(goal)), (1, not endpoints[0]), (2, not endpoints[1])):
+    for status, config_ok in ((OUT_OF_BOUNDS, checker.in_bounds(start) and checker.in_bounds(goal)),
+                              (START_IN_COLLISION, not endpoints[0]), (GOAL_IN_COLLISION, not endpoints[1])):
         if not config_ok:
             return PlanResult(status, None, time.perf_counter() - clock, 0)
 
@@ -225,7 +226,7 @@ def plan(checker: CollisionChecker, start, goal, config: PlannerConfig = Planner
     planner.solve(stop)
     used = min(iterations[0], config.iterations)
     if not problem.hasExactSolution():
-        status = 4 if iterations[0] > config.iterations else 5
+        status = ITERATION_LIMIT if iterations[0] > config.iterations else TIME_LIMIT
         return PlanResult(status, None, time.perf_counter() - clock, used)
     path = problem.getSolutionPath()
     if config.simplify:

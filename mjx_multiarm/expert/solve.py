@@ -17,11 +17,9 @@ import numpy as np
 
 from mjx_multiarm.env import step_limits
 from mjx_multiarm.expert.decimate import ANGLE_TOLERANCE, path_to_deltas
-from mjx_multiarm.expert.planner import SOLVED, STATUSES, CollisionChecker, PlannerConfig, plan, task_seed
+from mjx_multiarm.expert.planner import REPLAY_COLLISION, SOLVED, CollisionChecker, PlannerConfig, plan, task_seed
 from mjx_multiarm.robot import load_arm
 from mjx_multiarm.tasks.types import Tasks
-
-REPLAY_COLLISION = STATUSES.index("replay_collision")
 
 
 @dataclasses.dataclass
