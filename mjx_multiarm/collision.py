@@ -198,19 +198,25 @@ def num_substeps(joints_from, joints_to, resolution: float = SWEEP_RESOLUTION) -
     return max(1, math.ceil(largest / resolution - 1e-9))
 
 
-def swept_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, active, substeps: int) -> Contacts:
+def swept_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, active, substeps: int,
+                   end_capsules=None) -> Contacts:
     """Collision along the straight joint-space motion ``joints_from -> joints_to``.
 
     Checks the configurations at fractions k / substeps, k = 1..substeps (the start is
     assumed checked already), and returns per arm the smallest distance over them. Pick
     ``substeps`` with :func:`num_substeps`, or as ``ceil(max_step / resolution)`` for a
-    known largest joint step; it is static under ``jit``.
+    known largest joint step; it is static under ``jit``. A caller that already posed the
+    arms at ``joints_to`` passes their ``ArmFrames.capsules`` as ``end_capsules`` so the
+    end configuration's kinematics is not computed twice.
     """
-    fractions = jnp.arange(1, substeps + 1, dtype=jnp.result_type(joints_from)) / substeps
+    inner = substeps if end_capsules is None else substeps - 1
+    fractions = jnp.arange(1, inner + 1, dtype=jnp.result_type(joints_from)) / substeps
 
     def at(fraction):
         joints = joints_from + fraction * (joints_to - joints_from)
         return scene_contacts(scene, base_pos, base_quat, joints, active)
 
-    per_step = jax.vmap(at)(fractions)
-    return jax.tree.map(lambda x: x.min(axis=0), per_step)
+    per_step = [jax.tree.map(lambda x: x.min(axis=0), jax.vmap(at)(fractions))] if inner else []
+    if end_capsules is not None:
+        per_step.append(capsule_contacts(scene, end_capsules, active))
+    return jax.tree.map(lambda *x: functools.reduce(jnp.minimum, x), *per_step)

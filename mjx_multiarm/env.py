@@ -37,7 +37,7 @@ import numpy as np
 from flax import struct
 
 from mjx_multiarm.collision import SWEEP_RESOLUTION, num_substeps, swept_contacts
-from mjx_multiarm.kinematics import forward_kinematics
+from mjx_multiarm.kinematics import ArmFrames, forward_kinematics
 from mjx_multiarm.observation import NEIGHBOUR_RADIUS, ArmSnapshot, observe
 from mjx_multiarm.robot import NUM_JOINTS, ArmModel
 from mjx_multiarm.scene import Scene, build_scene
@@ -188,10 +188,12 @@ class ReachingEnv:
         pos, quat, _ = target_at(self.scene.arm, task.base_pos, task.base_quat, task.dynamic_start_joints, task.goal_joints, lengths, distance)
         return pos, quat
 
-    def _snapshot(self, task: Tasks, joints, lengths, step) -> ArmSnapshot:
-        frames = forward_kinematics(self.scene.arm, task.base_pos, task.base_quat, joints)
+    def _snapshot(self, task: Tasks, joints, frames: ArmFrames, lengths, step) -> ArmSnapshot:
         target_pos, target_quat = self._targets(task, lengths, step)
         return ArmSnapshot(joints, frames.ee_pos, frames.ee_quat, target_pos, target_quat, frames.points)
+
+    def _pose(self, task: Tasks, joints) -> ArmFrames:
+        return forward_kinematics(self.scene.arm, task.base_pos, task.base_quat, joints)
 
     def _reached(self, task: Tasks, arms: ArmSnapshot, tolerance):
         position = jnp.linalg.norm(arms.ee_pos - arms.target_pos, axis=-1)
@@ -215,7 +217,7 @@ class ReachingEnv:
         else:
             lengths = jnp.zeros((self.max_arms, 1), jnp.float32)  # unused; not empty, so checkpoints can hold it
         step = jnp.zeros((), jnp.int32)
-        arms = self._snapshot(task, task.start_joints, lengths, step)
+        arms = self._snapshot(task, task.start_joints, self._pose(task, task.start_joints), lengths, step)
         obs, obs_mask = self._observe(task, arms, arms)
         no = jnp.zeros(self.max_arms, bool)
         return State(
@@ -246,11 +248,13 @@ class ReachingEnv:
         delta = jnp.clip(jnp.where(finite, actions, 0.0) * self.action_scale, -self.max_step, self.max_step)
         delta = jnp.where(task.active[:, None], delta, 0.0)
         joints = jnp.clip(state.joints + delta, self.joint_range[:, 0], self.joint_range[:, 1])
-        contacts = swept_contacts(self.scene, task.base_pos, task.base_quat, state.joints, joints, task.active, self.substeps)
+        frames = self._pose(task, joints)
+        contacts = swept_contacts(self.scene, task.base_pos, task.base_quat, state.joints, joints, task.active, self.substeps,
+                                  end_capsules=frames.capsules)
         collided = contacts.collided & task.active
 
         step = state.step + 1
-        arms = self._snapshot(task, joints, state.target_lengths, step)
+        arms = self._snapshot(task, joints, frames, state.target_lengths, step)
         reached = self._reached(task, arms, state.tolerance)
         any_collision = collided.any()
         success = jnp.all(reached | ~task.active) & ~any_collision
