@@ -6,6 +6,7 @@ Public entry points:
 - :func:`build_scene`: the padded multi-arm MuJoCo scene and its JAX kernel constants.
 - :func:`forward_kinematics`, :func:`scene_contacts`, :func:`swept_contacts`: the batched
   JAX functions (jit/vmap-able) behind it.
+- :class:`Planner`: a trained policy as a closed-loop planner (numpy in/out, or batched JAX).
 - :class:`ReachingEnv`, :class:`EnvConfig`: the multi-arm reaching environment
   (``reset``/``step``); batching helpers in :mod:`mjx_multiarm.wrappers`.
 """
@@ -21,6 +22,8 @@ __all__ = [
     "ArmFrames",
     "Contacts",
     "EnvConfig",
+    "PlannedPath",
+    "Planner",
     "ReachingEnv",
     "Scene",
     "build_scene",
@@ -30,3 +33,13 @@ __all__ = [
     "scene_contacts",
     "swept_contacts",
 ]
+
+
+def __getattr__(name: str):
+    # The planner needs the networks (models/), which import this package's modules:
+    # load it on first use to keep the import graph acyclic.
+    if name in ("Planner", "PlannedPath"):
+        from mjx_multiarm import policy
+
+        return getattr(policy, name)
+    raise AttributeError(f"module 'mjx_multiarm' has no attribute {name!r}")

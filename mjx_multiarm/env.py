@@ -173,6 +173,13 @@ class ReachingEnv:
         """Actions that move the joints by ``deltas`` [..., 6] (each within the per-step limit)."""
         return deltas / self.action_scale
 
+    def next_joints(self, joints, actions, active):
+        """Joint angles [..., A, 6] after ``actions`` [..., A, 6]: scaled, clipped to the
+        per-step and joint limits; non-finite components and inactive arms hold still."""
+        delta = jnp.clip(jnp.where(jnp.isfinite(actions), actions, 0.0) * self.action_scale, -self.max_step, self.max_step)
+        delta = jnp.where(active[..., None], delta, 0.0)
+        return jnp.clip(joints + delta, self.joint_range[:, 0], self.joint_range[:, 1])
+
     def _check_task(self, task: Tasks) -> None:
         if task.active.shape != (self.max_arms,):
             raise ValueError(
@@ -245,9 +252,7 @@ class ReachingEnv:
             raise ValueError(f"actions have shape {actions.shape}, expected {self.action_shape} (max_arms, joints)")
         task = state.task
         finite = jnp.isfinite(actions)
-        delta = jnp.clip(jnp.where(finite, actions, 0.0) * self.action_scale, -self.max_step, self.max_step)
-        delta = jnp.where(task.active[:, None], delta, 0.0)
-        joints = jnp.clip(state.joints + delta, self.joint_range[:, 0], self.joint_range[:, 1])
+        joints = self.next_joints(state.joints, actions, task.active)
         frames = self._pose(task, joints)
         contacts = swept_contacts(self.scene, task.base_pos, task.base_quat, state.joints, joints, task.active, self.substeps,
                                   end_capsules=frames.capsules)

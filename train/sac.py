@@ -10,7 +10,8 @@ Without ``--tasks`` the run generates its training and evaluation tasks and plan
 experts itself (a small set; seconds to a minute), so it needs no precompute step. The
 run directory receives ``config.json``, ``tasks.npz`` / ``eval_tasks.npz``, the expert
 file, ``metrics.csv``, ``learning_curve.png``, ``checkpoints/`` (Orbax, the latest 3) and
-``summary.json``. A run stops after ``--steps`` environment steps or ``--minutes`` of
+``summary.json``, and ``policy.npz`` (the actor alone, for :class:`mjx_multiarm.Planner` and
+``eval.benchmark``; rewritten at every checkpoint). A run stops after ``--steps`` environment steps or ``--minutes`` of
 training, whichever comes first, then evaluates the policy's mean actions on the
 evaluation tasks at 2 cm / 0.1 rad.
 
@@ -47,6 +48,7 @@ from train.agent import SACConfig
 from train.checkpoint import Checkpoints
 from train.curriculum import LEVELS
 from train.evaluation import evaluate_policy
+from models.policy_file import save_policy
 from train.trainer import Demonstrations, TrainConfig, Trainer
 
 
@@ -68,6 +70,9 @@ class Preset:
     expert_replays: int
     minutes: float
     steps: int
+    alpha: float | str | None = None  # entropy temperature, "auto" (learned) or None: the SAC variant's default
+    target_entropy: float = SACConfig.target_entropy
+    gamma: float = SACConfig.gamma
 
 
 PRESETS = {
@@ -103,6 +108,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--reward", choices=["team", "selfish"], default="team", help="reward (selfish: ablation)")
     parser.add_argument("--observe", choices=["neighbours", "self"], default="neighbours", help="self: individualistic ablation")
     parser.add_argument("--sac", choices=["original", "standard"], default="original", help="policy parametrization and temperature")
+    parser.add_argument("--alpha", type=_alpha, help="entropy temperature: a number (fixed) or 'auto' (learned; default: the preset's)")
+    parser.add_argument("--target-entropy", type=float, help="target policy entropy of a learned temperature (default -6)")
+    parser.add_argument("--gamma", type=float, help="discount factor (default: the preset's)")
     parser.add_argument("--no-curriculum", action="store_true", help="train at 2 cm / 0.1 rad from the start")
     parser.add_argument("--checkpoint-minutes", type=float, default=5.0, help="minutes between checkpoints (default 5)")
     parser.add_argument("--no-buffer-checkpoint", action="store_true", help="leave the replay buffer out of checkpoints")
@@ -113,13 +121,26 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _alpha(text: str) -> float | str:
+    if text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number or 'auto', got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"the temperature must be positive, got {text}")
+    return value
+
+
 def _settings(args) -> dict:
     """The run's configuration as JSON data (stored in config.json, reused by --resume)."""
     preset = dataclasses.asdict(PRESETS[args.preset])
     overrides = {"train_tasks": args.train_tasks, "eval_tasks": args.eval_count, "num_envs": args.num_envs,
                  "batch_size": args.batch_size, "buffer_size": args.buffer_size, "warmup": args.warmup,
                  "episode_steps": args.episode_steps, "steps": args.steps, "minutes": args.minutes,
-                 "arms": list(args.arms) if args.arms else None}
+                 "arms": list(args.arms) if args.arms else None, "alpha": args.alpha, "target_entropy": args.target_entropy,
+                 "gamma": args.gamma}
     preset.update({k: v for k, v in overrides.items() if v is not None})
     preset["arms"] = list(preset["arms"])
     return {
@@ -172,11 +193,14 @@ def _prepare(run_dir: pathlib.Path, settings: dict, workers: int, log):
 
 def _train_config(settings: dict) -> TrainConfig:
     standard = settings["sac"] == "standard"
+    alpha = settings.get("alpha") if settings.get("alpha") is not None else ("auto" if standard else SACConfig.alpha)
+    learned = alpha == "auto"
     return TrainConfig(
         num_envs=settings["num_envs"], rollout_steps=settings["rollout_steps"], updates_per_iteration=settings["updates_per_iteration"],
         batch_size=settings["batch_size"], buffer_size=settings["buffer_size"], warmup=settings["warmup"], expert=settings["expert"],
         expert_replays=settings["expert_replays"], bc=settings["bc"], curriculum=settings["curriculum"],
-        sac=SACConfig(squash=standard, learn_alpha=standard),
+        sac=SACConfig(squash=standard, learn_alpha=learned, alpha=SACConfig.alpha if learned else alpha,
+                      target_entropy=settings.get("target_entropy", SACConfig.target_entropy), gamma=settings.get("gamma", SACConfig.gamma)),
     )
 
 
@@ -274,6 +298,9 @@ def main(argv=None) -> None:
         meta = {"iteration": iteration, "train_seconds": elapsed, "env_steps": int(state.env_steps),
                 "updates": int(state.agent.updates), "curriculum_level": int(state.curriculum.level), "with_buffer": settings["with_buffer"]}
         checkpoints.save(iteration, state, meta)
+        save_policy(run_dir / "policy.npz", state.agent.actor, trainer.config.sac.squash,
+                    {"action_scale": np.asarray(env.action_scale).tolist(), "neighbour_radius": env.config.neighbour_radius},
+                    {"run_dir": str(run_dir), "settings": settings, **meta})
         header = list(rows[0]) if rows else []
         atomic_write(metrics_file, lambda f: f.write((",".join(header) + "\n" + "".join(",".join(str(r[k]) for k in header) + "\n" for r in rows)).encode()))
 
@@ -291,7 +318,7 @@ def main(argv=None) -> None:
         rows.append({"iteration": iteration, "env_steps": steps, "updates": int(state.agent.updates), "seconds": round(elapsed, 3),
                      "level": int(metrics["level"]), "window_success": float(metrics["window_success"]),
                      "episodes": int(metrics["ended"]), "successes": int(metrics["successes"]),
-                     **{k: float(metrics[k]) for k in ("critic_loss", "actor_loss", "q", "entropy") if k in metrics},
+                     **{k: float(metrics[k]) for k in ("critic_loss", "actor_loss", "q", "entropy", "alpha") if k in metrics},
                      **({"bc_loss": float(metrics["bc_loss"])} if "bc_loss" in metrics else {})})
         now = time.perf_counter()
         if now - last_print > 2.0:

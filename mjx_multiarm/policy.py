@@ -1,0 +1,193 @@
+"""A trained decentralized policy as a closed-loop motion planner for any team of UR5 arms.
+
+    from mjx_multiarm import Planner
+
+    planner = Planner.load()                      # the policy shipped with the package
+    next_joints = planner.step(joints, base_poses, targets)           # numpy in, numpy out
+    path = planner.rollout(joints, base_poses, targets, steps=200)    # waypoints until reached
+
+Each call evaluates every arm's policy on its own decentralized observation (its
+neighbours within the policy's radius) and returns the next joint waypoint of every arm
+(one control step of 50 ms, within the velocity and joint limits). Arms may stand anywhere
+and there may be any number of them: the observation is built for exactly the arms given.
+:meth:`Planner.batched` is the jittable JAX path for batches of teams.
+
+Inputs (numpy, float): ``joints`` [n, 6] (rad); ``base_poses`` [n, 3] planar (x, y, yaw)
+or [n, 7] (x, y, z, qx, qy, qz, qw); ``targets`` [n, 7] end-effector poses (x, y, z, qx,
+qy, qz, qw) in the world frame. Quaternions are xyzw, as in the original's task files.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx, struct
+
+from mjx_multiarm.api import _check_finite, base_pose_arrays
+from mjx_multiarm.env import EVAL_TOLERANCE, EnvConfig, ReachingEnv
+from mjx_multiarm.kinematics import forward_kinematics
+from mjx_multiarm.observation import ArmSnapshot, observe
+from mjx_multiarm.robot import NUM_JOINTS
+from mjx_multiarm.transforms import quat_angle, xyzw_to_wxyz
+from models.policy_file import LoadedPolicy, load_policy
+
+#: The policy shipped with the package (trained by the command in benchmarks/RESULTS.md).
+SHIPPED_POLICY = pathlib.Path(__file__).parent / "assets" / "policy.npz"
+
+
+@struct.dataclass
+class PlannedPath:
+    """Result of :meth:`Planner.rollout` (numpy).
+
+    Attributes:
+      waypoints: [T + 1, n, 6] joint angles, the start first; T <= steps (the rollout stops
+        once every arm is within tolerance).
+      reached: bool, every arm within tolerance at the last waypoint.
+      position_error: [n] end-effector distance to the target (m) at the last waypoint.
+      angle_error: [n] orientation error (rad) at the last waypoint.
+    """
+
+    waypoints: np.ndarray
+    reached: np.ndarray
+    position_error: np.ndarray
+    angle_error: np.ndarray
+
+
+class Planner:
+    """Closed-loop planner from a policy file (see the module docstring)."""
+
+    def __init__(self, policy: LoadedPolicy):
+        self.policy = policy
+        env = policy.env
+        self._config = EnvConfig(action_scale=None, neighbour_radius=float(env["neighbour_radius"]))
+        self._action_scale = np.asarray(env["action_scale"], np.float32)
+        if self._action_scale.shape != (NUM_JOINTS,):
+            raise ValueError(f"policy file: env.action_scale has shape {self._action_scale.shape}, expected ({NUM_JOINTS},)")
+        self._actor_def, self._actor = nnx.split(policy.actor)
+        self._compiled: dict = {}
+
+    @classmethod
+    def load(cls, path: str | os.PathLike | None = None) -> Planner:
+        """The planner of policy file ``path`` (default: the shipped policy)."""
+        return cls(load_policy(SHIPPED_POLICY if path is None else path))
+
+    def _env(self, num_arms: int) -> ReachingEnv:
+        if ("env", num_arms) not in self._compiled:
+            env = ReachingEnv(num_arms, self._config)
+            env.action_scale = self._action_scale
+            self._compiled["env", num_arms] = env
+        return self._compiled["env", num_arms]
+
+    def batched(self, num_arms: int):
+        """The jitted JAX step for teams of ``num_arms`` arms, over any leading batch dims:
+        ``step(base_pos, base_quat, prev_joints, joints, prev_target_pos, prev_target_quat,
+        target_pos, target_quat) -> next joints`` with positions [..., n, 3], quaternions
+        **wxyz** [..., n, 4] and joints [..., n, 6] (JAX arrays, float32)."""
+        if ("step", num_arms) not in self._compiled:
+            env, actor_def = self._env(num_arms), self._actor_def
+
+            def step(params, base_pos, base_quat, prev_joints, joints, prev_target_pos, prev_target_quat, target_pos, target_quat):
+                one = functools.partial(_policy_joints, env, nnx.merge(actor_def, params))
+                for _ in range(joints.ndim - 2):  # leading batch dims
+                    one = jax.vmap(one)
+                return one(base_pos, base_quat, prev_joints, joints, (prev_target_pos, prev_target_quat), (target_pos, target_quat))
+
+            self._compiled["step", num_arms] = jax.jit(step)
+        return functools.partial(self._compiled["step", num_arms], self._actor)
+
+    def _rollout(self, num_arms: int, steps: int):
+        if ("rollout", num_arms, steps) not in self._compiled:
+            env, actor_def = self._env(num_arms), self._actor_def
+
+            def rollout(params, base_pos, base_quat, start, target_pos, target_quat):
+                actor, targets = nnx.merge(actor_def, params), (target_pos, target_quat)
+
+                def body(carry, _):
+                    prev, joints = carry
+                    following = _policy_joints(env, actor, base_pos, base_quat, prev, joints, targets, targets)
+                    return (joints, following), following
+
+                _, path = jax.lax.scan(body, (start, start), None, length=steps)
+                waypoints = jnp.concatenate([start[None], path])
+                frames = jax.vmap(lambda q: forward_kinematics(env.scene.arm, base_pos, base_quat, q))(waypoints)
+                return waypoints, jnp.linalg.norm(frames.ee_pos - target_pos, axis=-1), quat_angle(frames.ee_quat, target_quat)
+
+            self._compiled["rollout", num_arms, steps] = jax.jit(rollout)
+        return functools.partial(self._compiled["rollout", num_arms, steps], self._actor)
+
+    def _inputs(self, joints, base_poses, targets, previous_joints, previous_targets):
+        joints = np.asarray(joints, np.float64)
+        if joints.ndim != 2 or joints.shape[1] != NUM_JOINTS or joints.shape[0] < 1:
+            raise ValueError(f"joints: expected shape (n_arms, {NUM_JOINTS}), got {joints.shape}")
+        n = joints.shape[0]
+        base_poses = np.asarray(base_poses, np.float64)
+        if base_poses.shape not in ((n, 3), (n, 7)):
+            raise ValueError(f"base_poses: expected shape ({n}, 3) (x, y, yaw) or ({n}, 7) (x, y, z, qx, qy, qz, qw) "
+                             f"for {n} arms, got {base_poses.shape}")
+        checked = {"joints": joints, "base_poses": base_poses}
+        for name, value, shape in (("targets", targets, (n, 7)), ("previous_targets", previous_targets, (n, 7)),
+                                   ("previous_joints", previous_joints, (n, NUM_JOINTS))):
+            if value is not None:
+                value = np.asarray(value, np.float64)
+                if value.shape != shape:
+                    raise ValueError(f"{name}: expected shape {shape} for {n} arms, got {value.shape}")
+                checked[name] = value
+        for name, value in checked.items():
+            _check_finite(name, value)
+        base_pos, base_quat = base_pose_arrays(base_poses)
+
+        def target(value):
+            quat = xyzw_to_wxyz(value[:, 3:])
+            norm = np.linalg.norm(quat, axis=-1, keepdims=True)
+            if np.any(np.abs(norm - 1.0) > 1e-3):
+                raise ValueError("targets: quaternions (columns 3:7, xyzw) must have unit norm")
+            return value[:, :3], quat / norm
+
+        now = target(checked["targets"])
+        before = target(checked["previous_targets"]) if "previous_targets" in checked else now
+        prev_joints = checked.get("previous_joints", joints)
+        as32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        return n, [as32(x) for x in (base_pos, base_quat, prev_joints, joints, *before, *now)]
+
+    def step(self, joints, base_poses, targets, previous_joints=None, previous_targets=None) -> np.ndarray:
+        """The next joint waypoint [n, 6] of every arm (numpy in, numpy out).
+
+        ``previous_joints`` / ``previous_targets`` are the arms' joints and targets one
+        control step (50 ms) earlier; the policy observes this history (default: the same
+        as now, as at the start of an episode).
+        """
+        n, inputs = self._inputs(joints, base_poses, targets, previous_joints, previous_targets)
+        return np.asarray(self.batched(n)(*inputs), np.float64)
+
+    def rollout(self, joints, base_poses, targets, steps: int = 200, tolerance=EVAL_TOLERANCE) -> PlannedPath:
+        """Run the policy from ``joints`` toward static ``targets`` for at most ``steps``
+        control steps (kinematically, without collision checking: check the waypoints with
+        :func:`mjx_multiarm.evaluate_arms` or run the environment for that)."""
+        if steps < 1:
+            raise ValueError(f"steps must be >= 1, got {steps}")
+        n, (base_pos, base_quat, _, start, _, _, target_pos, target_quat) = self._inputs(joints, base_poses, targets, None, None)
+        waypoints, position, angle = self._rollout(n, steps)(base_pos, base_quat, start, target_pos, target_quat)
+        waypoints, position, angle = (np.asarray(x, np.float64) for x in (waypoints, position, angle))
+        reached = (position < tolerance[0]) & (angle < tolerance[1])
+        done = np.flatnonzero(reached.all(axis=1))
+        last = int(done[0]) if done.size else steps
+        return PlannedPath(waypoints[: last + 1], bool(reached[last].all()), position[last], angle[last])
+
+
+def _policy_joints(env: ReachingEnv, actor, base_pos, base_quat, prev_joints, joints, prev_targets, targets):
+    """Every arm's next joints under the policy's mean action (one team; any batch dims)."""
+    active = jnp.ones(joints.shape[:-1], bool)
+
+    def snapshot(q, target):
+        frames = forward_kinematics(env.scene.arm, base_pos, base_quat, q)
+        return ArmSnapshot(q, frames.ee_pos, frames.ee_quat, *target, frames.points)
+
+    obs, mask = observe(base_pos, base_quat, active, snapshot(prev_joints, prev_targets), snapshot(joints, targets),
+                        env.config.neighbour_radius)
+    mean, _ = actor(obs, mask)
+    return env.next_joints(joints, mean, active)

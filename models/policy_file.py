@@ -1,0 +1,117 @@
+"""Trained policies as small standalone files (the actor only): save, load, validate.
+
+A policy file is a NumPy ``.npz`` archive holding the actor's parameters (one array per
+parameter path, e.g. ``encoder/cell/ii/kernel``) and a ``__meta__`` entry: JSON with the
+format version, the architecture (``squash``, every parameter's shape), the environment
+settings the policy was trained for (action scale, neighbour radius, ...), free-form
+training provenance, and a SHA-256 over the parameters. Loading checks all of it, so a
+truncated or altered file, or one of another architecture, fails with a message that
+says what is wrong instead of producing a silently broken planner.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pathlib
+import zipfile
+
+import jax
+import numpy as np
+from flax import nnx
+
+from models.networks import Actor
+
+FORMAT = "mjx-multiarm-policy"
+VERSION = 1
+_META = "__meta__"
+
+
+def _flat(state: nnx.State) -> dict[str, np.ndarray]:
+    return {"/".join(str(k) for k in path): np.asarray(value, np.float32) for path, value in nnx.to_flat_state(state)}
+
+
+def _digest(arrays: dict[str, np.ndarray]) -> str:
+    sha = hashlib.sha256()
+    for name in sorted(arrays):
+        sha.update(name.encode())
+        sha.update(np.ascontiguousarray(arrays[name], np.float32).tobytes())
+    return sha.hexdigest()
+
+
+def _architecture(squash: bool) -> dict[str, list[int]]:
+    """Parameter shapes of a freshly built actor (no weights materialized)."""
+    abstract = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), squash=squash))
+    return {"/".join(str(k) for k in path): list(value.shape) for path, value in nnx.to_flat_state(nnx.state(abstract, nnx.Param))}
+
+
+def save_policy(path: str | os.PathLike, actor: nnx.State, squash: bool, env_settings: dict, provenance: dict | None = None) -> None:
+    """Write ``actor``'s parameters (an ``nnx.State`` of :class:`~models.networks.Actor`) to
+    ``path`` atomically. ``env_settings`` records what the policy expects of the
+    environment (``action_scale`` [6], ``neighbour_radius``, ``max_step`` [6])."""
+    arrays = _flat(jax.device_get(actor))
+    meta = {"format": FORMAT, "version": VERSION, "squash": bool(squash), "shapes": {k: list(v.shape) for k, v in arrays.items()},
+            "sha256": _digest(arrays), "env": env_settings, "provenance": provenance or {}}
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays, **{_META: np.frombuffer(json.dumps(meta).encode(), np.uint8)})
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+class LoadedPolicy:
+    """A policy file's actor module (``actor``), its ``squash`` flag and metadata."""
+
+    def __init__(self, actor: Actor, meta: dict):
+        self.actor, self.meta = actor, meta
+        self.squash = bool(meta["squash"])
+
+    @property
+    def env(self) -> dict:
+        return self.meta["env"]
+
+
+def load_policy(path: str | os.PathLike) -> LoadedPolicy:
+    """Read and validate a policy file (see the module docstring).
+
+    Raises FileNotFoundError if ``path`` does not exist and ValueError if it is not a
+    policy file, is corrupt, or holds another architecture than :class:`Actor`.
+    """
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such policy file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            contents = {name: data[name] for name in data.files}
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as error:
+        raise ValueError(f"{path}: not a readable policy file ({error})") from error
+    if _META not in contents:
+        raise ValueError(f"{path}: not a policy file (no {_META} entry); train.sac writes one to RUN_DIR/policy.npz")
+    try:
+        meta = json.loads(contents.pop(_META).tobytes().decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ValueError(f"{path}: corrupt policy metadata ({error})") from error
+    if meta.get("format") != FORMAT or meta.get("version") != VERSION:
+        raise ValueError(f"{path}: format {meta.get('format')!r} version {meta.get('version')!r}, expected {FORMAT!r} version {VERSION}")
+    if _digest(contents) != meta.get("sha256"):
+        raise ValueError(f"{path}: parameter checksum mismatch (the file is corrupt or was modified)")
+    expected = _architecture(bool(meta["squash"]))
+    for name, shape in expected.items():
+        if name not in contents:
+            raise ValueError(f"{path}: parameter {name} missing: the file holds another architecture")
+        if list(contents[name].shape) != shape:
+            raise ValueError(f"{path}: parameter {name} has shape {list(contents[name].shape)}, this actor expects {shape}: "
+                             "the file holds another architecture")
+    unexpected = sorted(set(contents) - set(expected))
+    if unexpected:
+        raise ValueError(f"{path}: unexpected parameters {unexpected[:3]}: the file holds another architecture")
+    actor = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), squash=bool(meta["squash"])))
+    graphdef, state = nnx.split(actor)
+    flat = [(path_, nnx.Param(jax.numpy.asarray(contents["/".join(str(k) for k in path_)])))
+            for path_, _ in nnx.to_flat_state(state)]
+    return LoadedPolicy(nnx.merge(graphdef, nnx.from_flat_state(flat)), meta)
+

@@ -1,0 +1,112 @@
+"""Policy files (save/load/validation) and the Planner API against the environment."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from models.networks import Actor, Critic
+from models.policy_file import load_policy, save_policy
+from mjx_multiarm import Planner, evaluate_arms
+from mjx_multiarm.env import ReachingEnv
+from mjx_multiarm.tasks.types import take, with_slots
+from mjx_multiarm.transforms import wxyz_to_xyzw
+from mjx_multiarm.wrappers import TaskBank
+
+
+def env_settings(env: ReachingEnv) -> dict:
+    return {"action_scale": np.asarray(env.action_scale).tolist(), "neighbour_radius": env.config.neighbour_radius}
+
+
+@pytest.fixture(scope="module")
+def policy_path(tmp_path_factory):
+    path = tmp_path_factory.mktemp("policy") / "policy.npz"
+    save_policy(path, nnx.state(Actor(nnx.Rngs(3))), False, env_settings(ReachingEnv(3)), {"note": "random weights"})
+    return path
+
+
+def test_round_trip_gives_the_same_actor(policy_path):
+    loaded = load_policy(policy_path)
+    original = Actor(nnx.Rngs(3))
+    obs = np.random.default_rng(0).normal(size=(5, 3, 107)).astype(np.float32)
+    mask = np.array([[False, True, True]] * 5)
+    np.testing.assert_array_equal(np.asarray(loaded.actor(obs, mask)[0]), np.asarray(original(obs, mask)[0]))
+    assert loaded.meta["provenance"] == {"note": "random weights"} and not loaded.squash
+
+
+def test_bad_policy_files_fail_clearly(policy_path, tmp_path):
+    with pytest.raises(FileNotFoundError, match="no such policy file"):
+        load_policy(tmp_path / "missing.npz")
+    data = bytearray(policy_path.read_bytes())
+    (tmp_path / "truncated.npz").write_bytes(bytes(data[: len(data) // 2]))
+    with pytest.raises(ValueError, match="not a readable policy file"):
+        load_policy(tmp_path / "truncated.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip file at all")
+    with pytest.raises(ValueError, match="not a readable policy file"):
+        load_policy(tmp_path / "junk.npz")
+    np.savez(tmp_path / "plain.npz", weights=np.zeros(3))
+    with pytest.raises(ValueError, match="not a policy file"):
+        load_policy(tmp_path / "plain.npz")
+    # altered weights: the checksum no longer matches
+    with np.load(policy_path) as archive:
+        arrays = {k: archive[k] for k in archive.files}
+    arrays["head/layers/0/bias"] = arrays["head/layers/0/bias"] + 1.0
+    np.savez(tmp_path / "altered.npz", **arrays)
+    with pytest.raises(ValueError, match="checksum mismatch"):
+        load_policy(tmp_path / "altered.npz")
+    # another architecture (a critic's parameters under a valid header)
+    save_policy(tmp_path / "critic.npz", nnx.state(Critic(nnx.Rngs(0))), False, {})
+    with pytest.raises(ValueError, match=r"head/layers/0/kernel has shape \[262, 128\], this actor expects \[256, 128\]"):
+        load_policy(tmp_path / "critic.npz")
+
+
+def test_planner_step_matches_the_environment(policy_path, generated):
+    """The planner builds exactly the observation the environment gives the policy, so its
+    next joints equal one environment step under the policy's mean action."""
+    loaded = load_policy(policy_path)
+    planner = Planner(loaded)
+    rows = np.flatnonzero(generated.num_arms == 3)[:2]
+    env = ReachingEnv(3)
+    bank = TaskBank.from_tasks(with_slots(take(generated, rows), 3), 3)
+    for row in range(2):
+        task = bank.take(np.array([row]))
+        state = env.reset(None, jax.tree.map(lambda x: x[0], task))
+        for _ in range(2):  # the second step observes a real history frame
+            previous = state
+            mean, _ = loaded.actor(state.obs, state.obs_mask)
+            state = env.step(state, mean)
+        bases = np.concatenate([np.asarray(state.task.base_pos), wxyz_to_xyzw(np.asarray(state.task.base_quat))], axis=-1)
+        targets = np.concatenate([np.asarray(state.task.target_pos), wxyz_to_xyzw(np.asarray(state.task.target_quat))], axis=-1)
+        mean, _ = loaded.actor(state.obs, state.obs_mask)
+        expected = np.asarray(env.step(state, mean).joints)
+        got = planner.step(np.asarray(state.joints), bases, targets, previous_joints=np.asarray(previous.joints))
+        np.testing.assert_allclose(got, expected, atol=2e-5)
+
+
+def test_planner_rollout_and_bad_input(policy_path):
+    planner = Planner.load(policy_path)
+    joints = np.array([[0.0, -1.2, 1.0, -1.4, -1.57, 0.0], [0.3, -1.0, 0.8, -1.2, -1.57, 0.0]])
+    bases = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, np.pi]])
+    here = evaluate_arms(bases, joints)
+    at_start = np.concatenate([here.ee_pos, here.ee_quat], axis=-1)
+    path = planner.rollout(joints, bases, at_start, steps=5)
+    assert path.reached and path.waypoints.shape == (1, 2, 6)  # already there: no motion
+    away = at_start + np.array([0.3, 0.0, 0.0, 0, 0, 0, 0])
+    path = planner.rollout(joints, bases, away, steps=5)
+    assert path.waypoints.shape == (6, 2, 6) and not path.reached  # random weights never get there
+    assert np.all(np.abs(np.diff(path.waypoints, axis=0)) <= ReachingEnv(2).max_step + 1e-6)
+    batched = planner.batched(2)
+    many = jnp.broadcast_to(jnp.asarray(joints, jnp.float32), (4, 2, 6))
+    assert batched(*(jnp.broadcast_to(jnp.asarray(x, jnp.float32), (4, *np.shape(x))) for x in (
+        np.zeros((2, 3)), [[1, 0, 0, 0]] * 2)), many, many, *(jnp.zeros((4, 2, k)) for k in (3, 4, 3, 4))).shape == (4, 2, 6)
+    with pytest.raises(ValueError, match=r"joints: expected shape \(n_arms, 6\), got \(2, 5\)"):
+        planner.step(joints[:, :5], bases, away)
+    with pytest.raises(ValueError, match=r"targets: expected shape \(2, 7\) for 2 arms, got \(3, 7\)"):
+        planner.step(joints, bases, np.zeros((3, 7)))
+    with pytest.raises(ValueError, match="non-finite"):
+        planner.step(np.where(np.eye(2, 6) > 0, np.nan, joints), bases, away)
+    with pytest.raises(ValueError, match="unit norm"):
+        planner.step(joints, bases, away * np.array([1, 1, 1, 0, 0, 0, 0]))
