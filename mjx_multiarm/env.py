@@ -70,8 +70,9 @@ class EnvConfig:
 
     Attributes:
       max_steps: episode length in control steps (paper 500; original benchmark code 400).
-      action_scale: radians of joint motion per unit of action; None means each joint's
-        velocity limit times the control period (an action of +-1 is full speed).
+      action_scale: radians of joint motion per unit of action (one number, or one per
+        joint); None means each joint's velocity limit times the control period (an action
+        of +-1 is full speed).
       neighbour_radius: bases within this distance (m) are observed; 1.7 as in the original
         code, 0.85 as in the paper text, 0 for the individualistic ablation (self only).
       reward: a key of :data:`REWARDS`.
@@ -82,7 +83,7 @@ class EnvConfig:
     """
 
     max_steps: int = 500
-    action_scale: float | None = None
+    action_scale: float | tuple[float, ...] | None = None
     neighbour_radius: float = NEIGHBOUR_RADIUS
     reward: str = "team"
     dynamic_targets: bool = False
@@ -92,8 +93,9 @@ class EnvConfig:
     def __post_init__(self):
         if self.max_steps < 1:
             raise ValueError(f"EnvConfig.max_steps must be >= 1, got {self.max_steps}")
-        if self.action_scale is not None and not self.action_scale > 0:
-            raise ValueError(f"EnvConfig.action_scale must be > 0 or None, got {self.action_scale}")
+        if self.action_scale is not None and (np.shape(self.action_scale) not in ((), (NUM_JOINTS,))
+                                              or not np.all(np.asarray(self.action_scale) > 0)):
+            raise ValueError(f"EnvConfig.action_scale must be None, a number > 0 or {NUM_JOINTS} of them, got {self.action_scale}")
         if not self.neighbour_radius >= 0:
             raise ValueError(f"EnvConfig.neighbour_radius must be >= 0, got {self.neighbour_radius}")
         if self.reward not in REWARDS:

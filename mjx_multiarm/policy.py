@@ -19,6 +19,7 @@ qy, qz, qw) in the world frame. Quaternions are xyzw, as in the original's task 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 import pathlib
@@ -64,10 +65,11 @@ class Planner:
     def __init__(self, policy: LoadedPolicy):
         self.policy = policy
         env = policy.env
-        self._config = EnvConfig(action_scale=None, neighbour_radius=float(env["neighbour_radius"]))
-        self._action_scale = np.asarray(env["action_scale"], np.float32)
-        if self._action_scale.shape != (NUM_JOINTS,):
-            raise ValueError(f"policy file: env.action_scale has shape {self._action_scale.shape}, expected ({NUM_JOINTS},)")
+        action_scale = np.asarray(env["action_scale"], np.float64)
+        if action_scale.shape != (NUM_JOINTS,):
+            raise ValueError(f"policy file: env.action_scale has shape {action_scale.shape}, expected ({NUM_JOINTS},)")
+        #: The environment settings the policy was trained with.
+        self.env_config = EnvConfig(action_scale=tuple(action_scale.tolist()), neighbour_radius=float(env["neighbour_radius"]))
         self._actor_def, self._actor = nnx.split(policy.actor)
         self._compiled: dict = {}
 
@@ -76,12 +78,25 @@ class Planner:
         """The planner of policy file ``path`` (default: the shipped policy)."""
         return cls(load_policy(SHIPPED_POLICY if path is None else path))
 
+    def environment(self, num_arms: int, **settings) -> ReachingEnv:
+        """An environment of ``num_arms`` slots with the policy's action scale and neighbour
+        radius (and ``settings``, :class:`EnvConfig` fields, e.g. ``dynamic_targets=True``)."""
+        return ReachingEnv(num_arms, dataclasses.replace(self.env_config, **settings))
+
     def _env(self, num_arms: int) -> ReachingEnv:
         if ("env", num_arms) not in self._compiled:
-            env = ReachingEnv(num_arms, self._config)
-            env.action_scale = self._action_scale
-            self._compiled["env", num_arms] = env
+            self._compiled["env", num_arms] = self.environment(num_arms)
         return self._compiled["env", num_arms]
+
+    def policy_fn(self):
+        """``policy(states, params) -> mean actions`` for :func:`mjx_multiarm.wrappers.make_episodes`
+        (``params``: :attr:`params`)."""
+        actor_def = self._actor_def
+        return lambda states, params: nnx.merge(actor_def, params)(states.obs, states.obs_mask)[0]
+
+    @property
+    def params(self):
+        return self._actor
 
     def batched(self, num_arms: int):
         """The jitted JAX step for teams of ``num_arms`` arms, over any leading batch dims:

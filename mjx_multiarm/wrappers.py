@@ -4,6 +4,8 @@ episode statistics, and replaying stored action sequences (expert demonstrations
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -207,3 +209,43 @@ def make_episodes(env: ReachingEnv, policy, steps: int):
         return jax.lax.scan(step, start, None, steps)[0]
 
     return episodes
+
+
+@dataclasses.dataclass
+class Outcomes:
+    """Per-task results of finished episodes (numpy, [N] each)."""
+
+    team: np.ndarray  # arms in the task
+    success: np.ndarray
+    collision: np.ndarray
+    timeout: np.ndarray  # neither success nor collision within the episode
+    steps: np.ndarray  # control steps the episode lasted
+
+    def select(self, mask) -> Outcomes:
+        return Outcomes(*(getattr(self, f.name)[mask] for f in dataclasses.fields(self)))
+
+    def stats(self, max_arms: int) -> EpisodeStats:
+        """The same counts as an :class:`EpisodeStats` (for its ``summary()``)."""
+
+        def count(weights):
+            return jnp.asarray(np.bincount(self.team, weights=weights, minlength=max_arms + 1).astype(np.int32))
+
+        return EpisodeStats(count(np.ones(len(self.team))), count(self.success), count(self.collision), count(self.timeout),
+                            count(np.where(self.success, self.steps, 0)))
+
+
+def run_episodes(env: ReachingEnv, policy, params, bank: TaskBank, steps: int | None = None, batch: int = 256) -> Outcomes:
+    """Every task of ``bank`` run once from its start for ``steps`` control steps (default:
+    the episode length), ``batch`` tasks per compiled call (the last batch is padded by
+    repeating tasks); ``policy(states, params)`` as in :func:`make_episodes`."""
+    episodes = make_episodes(env, policy, env.config.max_steps if steps is None else steps)
+    size = min(batch, bank.size)
+    parts = []
+    for start in range(0, bank.size, size):
+        rows = np.arange(start, start + size) % bank.size
+        final = jax.device_get(episodes(bank.take(rows), params))
+        keep = slice(0, min(size, bank.size - start))
+        collision = final.collided.any(axis=-1)
+        parts.append(Outcomes(final.task.active.sum(axis=-1), final.success, collision & ~final.success,
+                              ~final.success & ~collision, final.step).select(keep))
+    return Outcomes(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(Outcomes)))

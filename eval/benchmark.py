@@ -1,0 +1,230 @@
+"""Benchmark a trained policy or the BiRRT baseline on test tasks: the paper's tables.
+
+    python -m eval.benchmark                                    # shipped policy, generated test set
+    python -m eval.benchmark --checkpoint runs/x --tasks test.npz --out results/
+    python -m eval.benchmark --planner birrt --tasks test.npz   # the baseline on the same tasks
+
+The policy runs deterministically (mean actions) in the JAX environment, vectorized over
+the tasks of each team size (a scene of exactly that many slots). Static episodes start at
+the task's start and chase fixed targets; dynamic episodes (tasks with a dynamic mode)
+chase targets moving at the task's speed. An episode succeeds when every arm is within
+2 cm / 0.1 rad at the same step before ``--episode-steps`` (default 500, the paper's) and
+without any collision. BiRRT static: plan start -> goal, then execute the plan (its steps
+are replayed with the environment's rules before it counts); dynamic: the re-planning loop
+of :mod:`mjx_multiarm.expert.replan`.
+
+Writes ``static.md`` / ``static.csv`` (success by team size x difficulty bin, with the
+paper's numbers), ``dynamic.md`` / ``dynamic.csv`` (by target speed), and
+``outcomes.csv`` (one row per task and mode) to ``--out``. ``--json`` ends the output with
+one JSON line: ``success[arms][bin]``, ``collision_rate``, ``timeout_rate``,
+``steps_to_success`` and the same under ``dynamic``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+from mjx_multiarm.env import EVAL_TOLERANCE, EnvConfig, ReachingEnv
+from mjx_multiarm.expert.planner import SOLVED, PlannerConfig
+from mjx_multiarm.expert.replan import replan_episode
+from mjx_multiarm.expert.solve import solve_task
+from mjx_multiarm.policy import SHIPPED_POLICY, Planner
+from mjx_multiarm.progress import Progress
+from mjx_multiarm.tasks.__main__ import parse_arms
+from mjx_multiarm.tasks.dataset import atomic_write, load_tasks
+from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
+from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_index, concatenate, take
+from mjx_multiarm.wrappers import Outcomes, TaskBank, run_episodes
+
+#: The paper's static success rates (2 cm / 0.1 rad) by team size, all difficulties.
+PAPER_STATIC = {1: 0.988, 2: 0.943, 3: 0.960, 4: 0.951, 5: 0.943, 6: 0.938, 7: 0.918, 8: 0.909, 9: 0.910, 10: 0.905}
+
+
+def generated_test_tasks(per_team: int, arms: tuple[int, ...], seed: int) -> Tasks:
+    """``per_team`` tasks of every team size in ``arms`` with a dynamic mode (so both
+    tables can be made), spread over the difficulty bins by the generator."""
+    spec = GenerationSpec(count=per_team * len(arms), arm_counts=tuple(arms), mode="dynamic", seed=seed, max_arms=max(arms),
+                          chunk_size=256)
+    return concatenate([generate_chunk(spec, c) for c in range(spec.num_chunks)])
+
+
+def load_planner(checkpoint: pathlib.Path | None) -> Planner:
+    """The planner of a policy file, or of a run directory's ``policy.npz``."""
+    path = SHIPPED_POLICY if checkpoint is None else checkpoint
+    if path.is_dir():
+        path = path / "policy.npz"
+    return Planner.load(path)
+
+
+def policy_outcomes(planner: Planner, tasks: Tasks, dynamic: bool, episode_steps: int, batch: int = 256) -> Outcomes:
+    """Deterministic episodes of every task (in ``tasks`` order), bucketed by team size."""
+    team = tasks.num_arms
+    parts, order = [], []
+    for size in sorted(set(team.tolist())):
+        rows = np.flatnonzero(team == size)
+        env = planner.environment(size, max_steps=episode_steps, dynamic_targets=dynamic, tolerance=EVAL_TOLERANCE)
+        bank = TaskBank.from_tasks(take(tasks, rows), size)
+        parts.append(run_episodes(env, planner.policy_fn(), planner.params, bank, batch=batch))
+        order.append(rows)
+    return _in_order(parts, order)
+
+
+def _in_order(parts: list[Outcomes], order: list[np.ndarray]) -> Outcomes:
+    rows = np.concatenate(order)
+    merged = Outcomes(*(np.concatenate([getattr(p, name) for p in parts]) for name in Outcomes.__dataclass_fields__))
+    return merged.select(np.argsort(rows))
+
+
+def birrt_outcomes(tasks: Tasks, dynamic: bool, episode_steps: int, config: PlannerConfig, seed: int = 0,
+                   progress: Progress | None = None) -> tuple[Outcomes, np.ndarray]:
+    """The BiRRT baseline on every task: (outcomes, planning seconds per task)."""
+    team = tasks.num_arms
+    success, collision, steps, plan_s = (np.zeros(tasks.num_tasks, t) for t in (bool, bool, np.int64, np.float64))
+    envs = {}
+    for i in range(tasks.num_tasks):
+        if dynamic:
+            size = int(team[i])
+            if size not in envs:
+                envs[size] = ReachingEnv(size, EnvConfig(max_steps=episode_steps, dynamic_targets=True))
+            result = replan_episode(envs[size], tasks, i, config, seed)
+            success[i], collision[i], steps[i], plan_s[i] = result.success, result.collided, result.steps, result.plan_s
+        else:
+            result = solve_task(tasks, i, config, seed)
+            success[i], steps[i], plan_s[i] = result.status == SOLVED, len(result.deltas), result.plan_s
+        if progress:
+            progress.update(i + 1, i + 1, f"{int(success[: i + 1].sum())} succeeded")
+    return Outcomes(team, success, collision, ~success & ~collision, steps), plan_s
+
+
+def success_table(outcomes: Outcomes, bins: np.ndarray, names: list[str]) -> dict[int, dict[str, float | None]]:
+    """Success rate per team size and bin (None where a bin has no task), plus 'average'."""
+    table = {}
+    for size in sorted(set(outcomes.team.tolist())):
+        mine = outcomes.team == size
+        row = {}
+        for b, name in enumerate(names):
+            sel = mine & (bins == b)
+            row[name] = float(outcomes.success[sel].mean()) if sel.any() else None
+        row["average"] = float(outcomes.success[mine].mean())
+        table[int(size)] = row
+    return table
+
+
+def summary(outcomes: Outcomes, bins: np.ndarray, names: list[str]) -> dict:
+    won = outcomes.success
+    return {
+        "success": success_table(outcomes, bins, names),
+        "tasks": int(len(won)),
+        "collision_rate": float(outcomes.collision.mean()),
+        "timeout_rate": float(outcomes.timeout.mean()),
+        "steps_to_success": float(outcomes.steps[won].mean()) if won.any() else None,
+    }
+
+
+def markdown(title: str, result: dict, names: list[str], paper: dict | None) -> str:
+    """A markdown table of ``result['success']`` (rows: team sizes)."""
+    columns = [*names, "average"] + (["paper"] if paper else [])
+    lines = [f"### {title}", "", "| arms | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
+    for size, row in result["success"].items():
+        cells = ["-" if row[c] is None else f"{row[c]:.3f}" for c in [*names, "average"]]
+        if paper:
+            cells.append(f"{paper[size]:.3f}" if size in paper else "-")
+        lines.append(f"| {size} | " + " | ".join(cells) + " |")
+    steps = result["steps_to_success"]
+    lines += ["", f"{result['tasks']} tasks; collision rate {result['collision_rate']:.3f}, timeout rate "
+              f"{result['timeout_rate']:.3f}, mean steps to success {'-' if steps is None else f'{steps:.1f}'}", ""]
+    return "\n".join(lines)
+
+
+def _csv(result: dict, names: list[str]) -> bytes:
+    out = io.StringIO()
+    writer = csv.writer(out)
+    writer.writerow(["arms", *names, "average"])
+    for size, row in result["success"].items():
+        writer.writerow([size, *("" if row[c] is None else f"{row[c]:.6f}" for c in [*names, "average"])])
+    return out.getvalue().encode()
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m eval.benchmark", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--checkpoint", type=pathlib.Path, help="policy file or run directory (default: the shipped policy)")
+    parser.add_argument("--tasks", type=pathlib.Path, help="task dataset .npz (default: a generated test set)")
+    parser.add_argument("--planner", choices=["policy", "birrt"], default="policy")
+    parser.add_argument("--per-team", type=int, default=20, help="generated test set: tasks per team size (default 20)")
+    parser.add_argument("--arms", default="1-10", help="generated test set: team sizes (default 1-10)")
+    parser.add_argument("--mode", choices=["static", "dynamic", "both"], default="both", help="which tables (default both)")
+    parser.add_argument("--episode-steps", type=int, default=500, help="control steps per episode (default 500, the paper's)")
+    parser.add_argument("--iterations", type=int, default=PlannerConfig.iterations, help="BiRRT iteration cap per plan")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=pathlib.Path, help="output directory (default runs/benchmark-<planner>-<time>)")
+    parser.add_argument("--json", action="store_true", help="end with one JSON line")
+    return parser
+
+
+def main(argv=None) -> None:
+    args = _parser().parse_args(argv)
+    try:
+        arms = parse_arms(args.arms)
+        if args.tasks:
+            tasks = load_tasks(args.tasks)[0]
+        else:
+            print(f"generating {args.per_team} test tasks per team size {args.arms}...", file=sys.stderr)
+            tasks = generated_test_tasks(args.per_team, arms, args.seed + 20_000)
+        planner = load_planner(args.checkpoint) if args.planner == "policy" else None
+    except (ValueError, FileNotFoundError, argparse.ArgumentTypeError) as error:
+        sys.exit(f"error: {error}")
+    out = args.out or pathlib.Path("runs") / f"benchmark-{args.planner}-{time.strftime('%Y%m%d-%H%M%S')}"
+    out.mkdir(parents=True, exist_ok=True)
+    modes = ["static", "dynamic"] if args.mode == "both" else [args.mode]
+    if "dynamic" in modes and not tasks.has_dynamic_mode.any():
+        if args.mode == "dynamic":
+            sys.exit(f"error: {args.tasks}: no task has a dynamic mode")
+        modes.remove("dynamic")
+    report, rows = {"planner": args.planner}, []
+    for mode in modes:
+        subset = tasks if mode == "static" else take(tasks, tasks.has_dynamic_mode)
+        clock = time.perf_counter()
+        if planner is not None:
+            print(f"{mode}: {subset.num_tasks} tasks, policy rollouts...", file=sys.stderr)
+            outcomes, plan_s = policy_outcomes(planner, subset, mode == "dynamic", args.episode_steps), None
+        else:
+            progress = Progress(subset.num_tasks, f"{mode} BiRRT")
+            outcomes, plan_s = birrt_outcomes(subset, mode == "dynamic", args.episode_steps,
+                                              PlannerConfig(iterations=args.iterations), args.seed, progress)
+            progress.close()
+        bins, names = ((bin_index(subset.difficulty, DIFFICULTY_BINS), list(DIFFICULTY_BINS)) if mode == "static"
+                       else (bin_index(subset.speed, SPEED_BINS), list(SPEED_BINS)))
+        result = summary(outcomes, bins, names)
+        result["seconds"] = time.perf_counter() - clock
+        if plan_s is not None:
+            result["mean_plan_s"] = float(plan_s.mean())
+        title = f"{mode.capitalize()} targets, {args.planner}, success by team size and {'difficulty' if mode == 'static' else 'target speed'}"
+        text = markdown(title, result, names, PAPER_STATIC if mode == "static" else None)
+        print(text)
+        atomic_write(out / f"{mode}.md", lambda f, t=text: f.write(t.encode()))
+        atomic_write(out / f"{mode}.csv", lambda f, r=result, n=names: f.write(_csv(r, n)))
+        rows += [(mode, int(subset.task_id[i]), int(outcomes.team[i]), bool(outcomes.success[i]), bool(outcomes.collision[i]),
+                  bool(outcomes.timeout[i]), int(outcomes.steps[i])) for i in range(subset.num_tasks)]
+        if mode == "static":
+            report.update(result)
+        else:
+            report["dynamic"] = result
+    table = io.StringIO()
+    csv.writer(table).writerows([("mode", "task_id", "arms", "success", "collision", "timeout", "steps"), *rows])
+    atomic_write(out / "outcomes.csv", lambda f: f.write(table.getvalue().encode()))
+    atomic_write(out / "summary.json", lambda f: f.write(json.dumps(report, indent=2).encode()))
+    print(f"results in {out}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(report))
+
+
+if __name__ == "__main__":
+    main()
