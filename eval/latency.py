@@ -25,7 +25,7 @@ import sys
 import time
 
 
-def _pin(threads: int) -> None:
+def pin_threads(threads: int) -> None:
     """Restrict this process (and the XLA thread pool created later) to ``threads`` cores."""
     if "jax" in sys.modules:
         raise RuntimeError("eval.latency must pin its threads before JAX is imported")
@@ -86,7 +86,7 @@ def main(argv=None) -> None:
     parser.add_argument("--json", action="store_true", help="end with one JSON line")
     args = parser.parse_args(argv)
     try:
-        _pin(args.threads)
+        pin_threads(args.threads)
         result = measure(args.checkpoint, list(range(1, args.max_neighbours + 1)), args.calls)
     except (ValueError, FileNotFoundError) as error:
         sys.exit(f"error: {error}")
