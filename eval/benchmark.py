@@ -30,6 +30,7 @@ import pathlib
 import sys
 import time
 
+import jax
 import numpy as np
 
 from mjx_multiarm.env import EVAL_TOLERANCE, EnvConfig, ReachingEnv
@@ -38,6 +39,7 @@ from mjx_multiarm.expert.replan import replan_episode
 from mjx_multiarm.expert.solve import solve_task
 from mjx_multiarm.policy import SHIPPED_POLICY, Planner
 from mjx_multiarm.progress import Progress
+from mjx_multiarm.render import RenderingUnavailable, make_renderer, record_episode, render_episode, save_frames, save_video
 from mjx_multiarm.tasks.__main__ import parse_arms
 from mjx_multiarm.tasks.dataset import atomic_write, load_tasks
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
@@ -165,8 +167,30 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--iterations", type=int, default=PlannerConfig.iterations, help="BiRRT iteration cap per plan")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=pathlib.Path, help="output directory (default runs/benchmark-<planner>-<time>)")
+    parser.add_argument("--render", type=int, default=0, metavar="N",
+                        help="save the policy's first N static episodes as PNG frames (and MP4 with imageio) under OUT/render/")
     parser.add_argument("--json", action="store_true", help="end with one JSON line")
     return parser
+
+
+def render_episodes(planner: Planner, tasks: Tasks, count: int, episode_steps: int, out: pathlib.Path) -> None:
+    """Frames (and an MP4 where imageio is installed) of the policy on the first ``count`` tasks."""
+    renderers = {}
+    for i in range(min(count, tasks.num_tasks)):
+        size = int(tasks.num_arms[i])
+        env = planner.environment(size, max_steps=episode_steps, tolerance=EVAL_TOLERANCE)
+        task = jax.tree.map(lambda x: x[0], TaskBank.from_tasks(take(tasks, np.array([i])), size).tasks)
+        trajectory = record_episode(env, planner.policy_fn(), planner.params, task)
+        if size not in renderers:
+            renderers[size] = make_renderer(env.scene.mj_model, 480, 640)
+        frames = render_episode(env, jax.device_get(task), trajectory, renderer=renderers[size])
+        name = f"episode{i}_{size}arms_{'success' if trajectory.success else 'collision' if trajectory.collided else 'timeout'}"
+        save_frames(frames, out / "render" / name)
+        try:
+            save_video(frames, out / "render" / f"{name}.mp4")
+        except ImportError as error:
+            print(f"render: {error}", file=sys.stderr)
+        print(f"render: {out / 'render' / name} ({len(frames)} frames)", file=sys.stderr)
 
 
 def main(argv=None) -> None:
@@ -183,6 +207,11 @@ def main(argv=None) -> None:
         sys.exit(f"error: {error}")
     out = args.out or pathlib.Path("runs") / f"benchmark-{args.planner}-{time.strftime('%Y%m%d-%H%M%S')}"
     out.mkdir(parents=True, exist_ok=True)
+    if args.render and planner is not None:
+        try:
+            render_episodes(planner, tasks, args.render, args.episode_steps, out)
+        except RenderingUnavailable as error:
+            print(f"render: skipped: {error}", file=sys.stderr)
     modes = ["static", "dynamic"] if args.mode == "both" else [args.mode]
     if "dynamic" in modes and not tasks.has_dynamic_mode.any():
         if args.mode == "dynamic":
