@@ -101,7 +101,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--tasks", type=pathlib.Path, help="training task dataset (.npz) instead of generated tasks")
     parser.add_argument("--experts", type=pathlib.Path, help="expert file of --tasks (planned into the run dir if absent)")
     parser.add_argument("--eval-tasks", type=pathlib.Path, help="evaluation task dataset (default: generated)")
-    for name in ("train_tasks", "eval_count", "num_envs", "batch_size", "buffer_size", "warmup", "episode_steps"):
+    for name in ("train_tasks", "eval_count", "num_envs", "rollout_steps", "updates_per_iteration", "batch_size", "buffer_size", "warmup",
+                 "expert_replays", "episode_steps"):
         parser.add_argument("--" + name.replace("_", "-"), dest=name, type=int, help=f"override the preset's {name.replace('_', ' ')}")
     parser.add_argument("--no-expert", action="store_true", help="ablation: no expert demonstrations")
     parser.add_argument("--bc", action="store_true", help="ablation: behaviour cloning on the expert data only")
@@ -137,7 +138,8 @@ def _settings(args) -> dict:
     """The run's configuration as JSON data (stored in config.json, reused by --resume)."""
     preset = dataclasses.asdict(PRESETS[args.preset])
     overrides = {"train_tasks": args.train_tasks, "eval_tasks": args.eval_count, "num_envs": args.num_envs,
-                 "batch_size": args.batch_size, "buffer_size": args.buffer_size, "warmup": args.warmup,
+                 "rollout_steps": args.rollout_steps, "updates_per_iteration": args.updates_per_iteration,
+                 "batch_size": args.batch_size, "buffer_size": args.buffer_size, "warmup": args.warmup, "expert_replays": args.expert_replays,
                  "episode_steps": args.episode_steps, "steps": args.steps, "minutes": args.minutes,
                  "arms": list(args.arms) if args.arms else None, "alpha": args.alpha, "target_entropy": args.target_entropy,
                  "gamma": args.gamma}
