@@ -1,0 +1,86 @@
+"""The evaluation suite: benchmark tables (policy and BiRRT), latency, renders, bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+from flax import nnx
+
+from eval import benchmark
+from models.networks import Actor
+from models.policy_file import save_policy
+from mjx_multiarm import Planner
+from mjx_multiarm.env import ReachingEnv
+from mjx_multiarm.render import RenderingUnavailable, record_episode, render_episode
+from mjx_multiarm.tasks.dataset import save_tasks
+from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
+from mjx_multiarm.wrappers import TaskBank
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    root = tmp_path_factory.mktemp("eval")
+    env = ReachingEnv(2)
+    save_policy(root / "policy.npz", nnx.state(Actor(nnx.Rngs(1))), False,
+                {"action_scale": np.asarray(env.action_scale).tolist(), "neighbour_radius": env.config.neighbour_radius})
+    tasks = generate_chunk(GenerationSpec(count=4, arm_counts=(1, 2), mode="dynamic", seed=3, max_arms=2), 0)
+    save_tasks(root / "tasks.npz", tasks)
+    return root
+
+
+def last_json(capsys) -> dict:
+    return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+def test_benchmark_policy_and_birrt_tables(files, tmp_path, capsys):
+    common = ["--tasks", str(files / "tasks.npz"), "--episode-steps", "10", "--json"]
+    benchmark.main(["--checkpoint", str(files / "policy.npz"), "--out", str(tmp_path / "p"), *common])
+    policy = last_json(capsys)
+    assert set(policy["success"]) == {"1", "2"} and set(policy["success"]["2"]) == {"easy", "medium", "hard", "average"}
+    assert policy["tasks"] == 4 and policy["success"]["1"]["average"] == 0.0  # random weights reach nothing in 10 steps
+    assert policy["timeout_rate"] + policy["collision_rate"] == pytest.approx(1.0)
+    assert set(policy["dynamic"]["success"]["1"]) == {"slow", "medium", "fast", "average"}
+    for name in ("static.md", "static.csv", "dynamic.md", "dynamic.csv", "outcomes.csv", "summary.json"):
+        assert (tmp_path / "p" / name).is_file()
+    assert "| 1 |" in (tmp_path / "p" / "static.md").read_text() and "0.988" in (tmp_path / "p" / "static.md").read_text()
+
+    benchmark.main(["--planner", "birrt", "--mode", "static", "--out", str(tmp_path / "b"), *common])
+    birrt = last_json(capsys)
+    assert birrt["success"]["1"]["average"] == 1.0 and birrt["success"]["2"]["average"] == 1.0
+    assert birrt["steps_to_success"] > 0 and "dynamic" not in birrt
+
+
+def test_benchmark_bad_checkpoints(files, tmp_path):
+    with pytest.raises(SystemExit, match="no such policy file"):
+        benchmark.main(["--checkpoint", str(tmp_path / "none.npz"), "--tasks", str(files / "tasks.npz")])
+    (tmp_path / "bad.npz").write_bytes(b"\x00" * 100)
+    with pytest.raises(SystemExit, match="not a readable policy file"):
+        benchmark.main(["--checkpoint", str(tmp_path / "bad.npz"), "--tasks", str(files / "tasks.npz")])
+
+
+def test_latency_cli_reports_percentiles(files):
+    out = subprocess.run([sys.executable, "-m", "eval.latency", "--checkpoint", str(files / "policy.npz"), "--calls", "5",
+                          "--max-neighbours", "2", "--json"], capture_output=True, text=True, check=True).stdout
+    result = json.loads(out.strip().splitlines()[-1])
+    assert result["neighbours"] == [1, 2] and result["threads"] == 1
+    assert all(0 < p50 <= p99 for p50, p99 in zip(result["p50_ms"], result["p99_ms"]))
+
+
+def test_render_frames_show_the_arms(files):
+    planner = Planner.load(files / "policy.npz")
+    tasks = generate_chunk(GenerationSpec(count=1, arm_counts=(2,), mode="static", seed=5, max_arms=2), 0)
+    env = planner.environment(2, max_steps=3)
+    task = jax.tree.map(lambda x: x[0], TaskBank.from_tasks(tasks, 2).tasks)
+    trajectory = record_episode(env, planner.policy_fn(), planner.params, task)
+    assert trajectory.joints.shape == (4, 2, 6)
+    try:
+        frames = render_episode(env, jax.device_get(task), trajectory, height=60, width=80)
+    except RenderingUnavailable as error:
+        pytest.skip(str(error))
+    assert frames.shape == (4, 60, 80, 3) and frames.dtype == np.uint8
+    assert frames.std() > 5  # not a blank image
