@@ -8,7 +8,9 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
+from flax import nnx
 
+from models.policy_file import load_policy
 from train import sac
 from train.checkpoint import Checkpoints
 
@@ -29,8 +31,13 @@ def test_cli_runs_end_to_end_and_resumes_exactly(tmp_path, capsys):
     for key in ("env_steps", "updates", "env_steps_per_s", "success_rate", "curriculum_level", "checkpoint"):
         assert key in summary
     assert summary["env_steps"] == 400 and summary["updates"] > 0
-    for name in ("config.json", "metrics.csv", "learning_curve.png", "summary.json", "tasks.npz", "tasks.experts"):
+    for name in ("config.json", "metrics.csv", "learning_curve.png", "summary.json", "tasks.npz", "tasks.experts", "policy.npz"):
         assert (whole / name).is_file(), name
+    # the exported policy file holds the final actor, for the Planner and eval.benchmark
+    exported = load_policy(whole / "policy.npz")
+    assert exported.meta["provenance"]["env_steps"] == 400
+    for a, b in zip(jax.tree.leaves(nnx.state(exported.actor)), _final_actor(whole)):
+        np.testing.assert_array_equal(np.asarray(a), b)
 
     split = tmp_path / "split"
     sac.main(["--preset", "tiny", "--run-dir", str(split), "--workers", "1", "--steps", "200"])
