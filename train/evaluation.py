@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 from flax import nnx
 
 from mjx_multiarm.env import ReachingEnv
@@ -9,12 +10,14 @@ from mjx_multiarm.wrappers import TaskBank, run_episodes
 from train.agent import Agent
 
 
-def evaluate_policy(agent: Agent, env: ReachingEnv, bank: TaskBank) -> dict:
-    """Run every task of ``bank`` once with the policy's mean actions for ``env``'s episode
-    length; returns :meth:`~mjx_multiarm.wrappers.EpisodeStats.summary`."""
+def evaluate_policy(agent: Agent, env: ReachingEnv, bank: TaskBank, sample_key=None) -> dict:
+    """Run every task of ``bank`` once for ``env``'s episode length with the policy's mean
+    actions, or with sampled actions (the training policy) when ``sample_key`` is given;
+    returns :meth:`~mjx_multiarm.wrappers.EpisodeStats.summary`."""
     actor_def = agent.actor_def
 
     def policy(states, actor):
-        return nnx.merge(actor_def, actor)(states.obs, states.obs_mask)[0]
+        key = None if sample_key is None else jax.random.fold_in(sample_key, states.step[0])
+        return nnx.merge(actor_def, actor)(states.obs, states.obs_mask, key)[0]
 
     return run_episodes(env, policy, agent.actor, bank).stats(env.max_arms).summary()
