@@ -76,13 +76,7 @@ def policy_outcomes(planner: Planner, tasks: Tasks, dynamic: bool, episode_steps
         bank = TaskBank.from_tasks(take(tasks, rows), size)
         parts.append(run_episodes(env, planner.policy_fn(), planner.params, bank, batch=batch))
         order.append(rows)
-    return _in_order(parts, order)
-
-
-def _in_order(parts: list[Outcomes], order: list[np.ndarray]) -> Outcomes:
-    rows = np.concatenate(order)
-    merged = Outcomes(*(np.concatenate([getattr(p, name) for p in parts]) for name in Outcomes.__dataclass_fields__))
-    return merged.select(np.argsort(rows))
+    return Outcomes.concatenate(parts).select(np.argsort(np.concatenate(order)))
 
 
 def birrt_outcomes(tasks: Tasks, dynamic: bool, episode_steps: int, config: PlannerConfig, seed: int = 0,
@@ -175,15 +169,16 @@ def _parser() -> argparse.ArgumentParser:
 
 def render_episodes(planner: Planner, tasks: Tasks, count: int, episode_steps: int, out: pathlib.Path) -> None:
     """Frames (and an MP4 where imageio is installed) of the policy on the first ``count`` tasks."""
-    renderers = {}
+    scenes = {}  # team size -> (environment, renderer)
     for i in range(min(count, tasks.num_tasks)):
         size = int(tasks.num_arms[i])
-        env = planner.environment(size, max_steps=episode_steps, tolerance=EVAL_TOLERANCE)
+        if size not in scenes:
+            env = planner.environment(size, max_steps=episode_steps, tolerance=EVAL_TOLERANCE)
+            scenes[size] = env, make_renderer(env.scene.mj_model, 480, 640)
+        env, renderer = scenes[size]
         task = jax.tree.map(lambda x: x[0], TaskBank.from_tasks(take(tasks, np.array([i])), size).tasks)
         trajectory = record_episode(env, planner.policy_fn(), planner.params, task)
-        if size not in renderers:
-            renderers[size] = make_renderer(env.scene.mj_model, 480, 640)
-        frames = render_episode(env, jax.device_get(task), trajectory, renderer=renderers[size])
+        frames = render_episode(env, jax.device_get(task), trajectory, renderer=renderer)
         name = f"episode{i}_{size}arms_{'success' if trajectory.success else 'collision' if trajectory.collided else 'timeout'}"
         save_frames(frames, out / "render" / name)
         try:

@@ -34,8 +34,7 @@ def policy_times(planner, tasks, episode_steps: int):
     for size in sorted(set(tasks.num_arms.tolist())):
         env = planner.environment(size, max_steps=episode_steps, tolerance=EVAL_TOLERANCE)
         reset, step = jax.jit(env.reset), jax.jit(env.step)
-        policy = planner.policy_fn()
-        forward = jax.jit(lambda state, params: policy(state, params))
+        forward = jax.jit(planner.policy_fn())
         rows = np.flatnonzero(tasks.num_arms == size)
         bank = TaskBank.from_tasks(take(tasks, rows), size)
         for i, row in enumerate(rows):

@@ -45,10 +45,11 @@ class ArmEvaluation:
     distance_ground: np.ndarray
 
 
-def base_pose_arrays(base_poses) -> tuple[np.ndarray, np.ndarray]:
-    """Split base poses into positions [..., 3] and wxyz quaternions [..., 4].
+def base_pose_arrays(base_poses, name: str = "base_poses") -> tuple[np.ndarray, np.ndarray]:
+    """Split poses into positions [..., 3] and wxyz quaternions [..., 4].
 
-    ``base_poses`` is [..., 3] planar (x, y, yaw) or [..., 7] (x, y, z, qx, qy, qz, qw).
+    ``base_poses`` is [..., 3] planar (x, y, yaw) or [..., 7] (x, y, z, qx, qy, qz, qw);
+    ``name`` is the argument named in errors.
     """
     base_poses = np.asarray(base_poses, dtype=np.float64)
     if base_poses.shape[-1] == 3:
@@ -57,11 +58,11 @@ def base_pose_arrays(base_poses) -> tuple[np.ndarray, np.ndarray]:
     quat = np.asarray(xyzw_to_wxyz(base_poses[..., 3:]))
     norm = np.linalg.norm(quat, axis=-1, keepdims=True)
     if np.any(np.abs(norm - 1.0) > 1e-3):
-        raise ValueError("base_poses: quaternions (columns 3:7, xyzw) must have unit norm")
+        raise ValueError(f"{name}: quaternions (columns 3:7, xyzw) must have unit norm")
     return base_poses[..., :3], quat / norm
 
 
-def _check_finite(name: str, array: np.ndarray) -> None:
+def check_finite(name: str, array: np.ndarray) -> None:
     if not np.all(np.isfinite(array)):
         bad = np.argwhere(~np.isfinite(array))[0]
         raise ValueError(f"{name}: non-finite value (NaN or inf) at index {tuple(int(i) for i in bad)}")
@@ -84,8 +85,8 @@ def _validated(base_poses, joints, active, max_arms):
     max_arms = n if max_arms is None else max_arms
     if n > max_arms:
         raise ValueError(f"{n} arms given but the scene has only max_arms={max_arms} slots")
-    _check_finite("joints", joints)
-    _check_finite("base_poses", base_poses)
+    check_finite("joints", joints)
+    check_finite("base_poses", base_poses)
     return base_poses, joints, active, max_arms
 
 

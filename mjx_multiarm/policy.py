@@ -29,12 +29,12 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx, struct
 
-from mjx_multiarm.api import _check_finite, base_pose_arrays
+from mjx_multiarm.api import base_pose_arrays, check_finite
 from mjx_multiarm.env import EVAL_TOLERANCE, EnvConfig, ReachingEnv
 from mjx_multiarm.kinematics import forward_kinematics
 from mjx_multiarm.observation import ArmSnapshot, observe
 from mjx_multiarm.robot import NUM_JOINTS
-from mjx_multiarm.transforms import quat_angle, xyzw_to_wxyz
+from mjx_multiarm.transforms import quat_angle
 from models.policy_file import LoadedPolicy, load_policy
 
 #: The policy shipped with the package (trained by the command in benchmarks/RESULTS.md).
@@ -57,6 +57,11 @@ class PlannedPath:
     reached: np.ndarray
     position_error: np.ndarray
     angle_error: np.ndarray
+
+
+def policy_env_settings(env: ReachingEnv) -> dict:
+    """What a policy file records of its training environment (read back by :class:`Planner`)."""
+    return {"action_scale": np.asarray(env.action_scale).tolist(), "neighbour_radius": env.config.neighbour_radius}
 
 
 class Planner:
@@ -153,18 +158,10 @@ class Planner:
                     raise ValueError(f"{name}: expected shape {shape} for {n} arms, got {value.shape}")
                 checked[name] = value
         for name, value in checked.items():
-            _check_finite(name, value)
+            check_finite(name, value)
         base_pos, base_quat = base_pose_arrays(base_poses)
-
-        def target(value):
-            quat = xyzw_to_wxyz(value[:, 3:])
-            norm = np.linalg.norm(quat, axis=-1, keepdims=True)
-            if np.any(np.abs(norm - 1.0) > 1e-3):
-                raise ValueError("targets: quaternions (columns 3:7, xyzw) must have unit norm")
-            return value[:, :3], quat / norm
-
-        now = target(checked["targets"])
-        before = target(checked["previous_targets"]) if "previous_targets" in checked else now
+        now = base_pose_arrays(checked["targets"], "targets")
+        before = base_pose_arrays(checked["previous_targets"], "previous_targets") if "previous_targets" in checked else now
         prev_joints = checked.get("previous_joints", joints)
         as32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
         return n, [as32(x) for x in (base_pos, base_quat, prev_joints, joints, *before, *now)]

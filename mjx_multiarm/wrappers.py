@@ -221,6 +221,10 @@ class Outcomes:
     timeout: np.ndarray  # neither success nor collision within the episode
     steps: np.ndarray  # control steps the episode lasted
 
+    @classmethod
+    def concatenate(cls, parts: list[Outcomes]) -> Outcomes:
+        return cls(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(cls)))
+
     def select(self, mask) -> Outcomes:
         return Outcomes(*(getattr(self, f.name)[mask] for f in dataclasses.fields(self)))
 
@@ -248,4 +252,4 @@ def run_episodes(env: ReachingEnv, policy, params, bank: TaskBank, steps: int | 
         collision = final.collided.any(axis=-1)
         parts.append(Outcomes(final.task.active.sum(axis=-1), final.success, collision & ~final.success,
                               ~final.success & ~collision, final.step).select(keep))
-    return Outcomes(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(Outcomes)))
+    return Outcomes.concatenate(parts)

@@ -28,8 +28,13 @@ VERSION = 1
 _META = "__meta__"
 
 
+def _name(path) -> str:
+    """A parameter's name in the file: its path joined by '/' (e.g. ``encoder/cell/ii/kernel``)."""
+    return "/".join(str(k) for k in path)
+
+
 def _flat(state: nnx.State) -> dict[str, np.ndarray]:
-    return {"/".join(str(k) for k in path): np.asarray(value, np.float32) for path, value in nnx.to_flat_state(state)}
+    return {_name(path): np.asarray(value, np.float32) for path, value in nnx.to_flat_state(state)}
 
 
 def _digest(arrays: dict[str, np.ndarray]) -> str:
@@ -43,7 +48,7 @@ def _digest(arrays: dict[str, np.ndarray]) -> str:
 def _architecture(squash: bool) -> dict[str, list[int]]:
     """Parameter shapes of a freshly built actor (no weights materialized)."""
     abstract = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), squash=squash))
-    return {"/".join(str(k) for k in path): list(value.shape) for path, value in nnx.to_flat_state(nnx.state(abstract, nnx.Param))}
+    return {_name(path): list(value.shape) for path, value in nnx.to_flat_state(nnx.state(abstract, nnx.Param))}
 
 
 def save_policy(path: str | os.PathLike, actor: nnx.State, squash: bool, env_settings: dict, provenance: dict | None = None) -> None:
@@ -111,7 +116,6 @@ def load_policy(path: str | os.PathLike) -> LoadedPolicy:
         raise ValueError(f"{path}: unexpected parameters {unexpected[:3]}: the file holds another architecture")
     actor = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), squash=bool(meta["squash"])))
     graphdef, state = nnx.split(actor)
-    flat = [(path_, nnx.Param(jax.numpy.asarray(contents["/".join(str(k) for k in path_)])))
-            for path_, _ in nnx.to_flat_state(state)]
+    flat = [(path_, nnx.Param(jax.numpy.asarray(contents[_name(path_)]))) for path_, _ in nnx.to_flat_state(state)]
     return LoadedPolicy(nnx.merge(graphdef, nnx.from_flat_state(flat)), meta)
 

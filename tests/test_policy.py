@@ -11,20 +11,17 @@ from flax import nnx
 from models.networks import Actor, Critic
 from models.policy_file import load_policy, save_policy
 from mjx_multiarm import Planner, evaluate_arms
+from mjx_multiarm.policy import policy_env_settings
 from mjx_multiarm.env import ReachingEnv
 from mjx_multiarm.tasks.types import take, with_slots
 from mjx_multiarm.transforms import wxyz_to_xyzw
 from mjx_multiarm.wrappers import TaskBank
 
 
-def env_settings(env: ReachingEnv) -> dict:
-    return {"action_scale": np.asarray(env.action_scale).tolist(), "neighbour_radius": env.config.neighbour_radius}
-
-
 @pytest.fixture(scope="module")
 def policy_path(tmp_path_factory):
     path = tmp_path_factory.mktemp("policy") / "policy.npz"
-    save_policy(path, nnx.state(Actor(nnx.Rngs(3))), False, env_settings(ReachingEnv(3)), {"note": "random weights"})
+    save_policy(path, nnx.state(Actor(nnx.Rngs(3))), False, policy_env_settings(ReachingEnv(3)), {"note": "random weights"})
     return path
 
 

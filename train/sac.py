@@ -36,10 +36,12 @@ import time
 import jax
 import numpy as np
 
+from models.policy_file import save_policy
 from mjx_multiarm.env import EVAL_TOLERANCE, EnvConfig, ReachingEnv
 from mjx_multiarm.expert.planner import PlannerConfig
 from mjx_multiarm.expert.precompute import precompute
 from mjx_multiarm.expert.store import ExpertStore
+from mjx_multiarm.policy import policy_env_settings
 from mjx_multiarm.tasks.__main__ import parse_arms
 from mjx_multiarm.tasks.dataset import atomic_write, load_tasks, save_tasks
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
@@ -49,7 +51,6 @@ from train.agent import SACConfig
 from train.checkpoint import Checkpoints
 from train.curriculum import LEVELS
 from train.evaluation import evaluate_policy
-from models.policy_file import save_policy
 from train.trainer import Demonstrations, TrainConfig, Trainer
 
 
@@ -301,8 +302,7 @@ def main(argv=None) -> None:
         meta = {"iteration": iteration, "train_seconds": elapsed, "env_steps": int(state.env_steps),
                 "updates": int(state.agent.updates), "curriculum_level": int(state.curriculum.level), "with_buffer": settings["with_buffer"]}
         checkpoints.save(iteration, state, meta)
-        save_policy(run_dir / "policy.npz", state.agent.actor, trainer.config.sac.squash,
-                    {"action_scale": np.asarray(env.action_scale).tolist(), "neighbour_radius": env.config.neighbour_radius},
+        save_policy(run_dir / "policy.npz", state.agent.actor, trainer.config.sac.squash, policy_env_settings(env),
                     {"run_dir": str(run_dir), "settings": settings, **meta})
         header = list(rows[0]) if rows else []
         atomic_write(metrics_file, lambda f: f.write((",".join(header) + "\n" + "".join(",".join(str(r[k]) for k in header) + "\n" for r in rows)).encode()))
