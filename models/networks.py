@@ -84,19 +84,23 @@ class Actor(nnx.Module):
         self.encoder = SequenceEncoder(rngs)
         self.head = MLP((HIDDEN, *MLP_LAYERS, 2 * NUM_JOINTS), rngs, final_tanh=not squash)
 
-    def distribution(self, obs, mask):
-        """(mean [..., 6], log-std [..., 6])."""
+    def distribution(self, obs, mask, std_scale=1.0):
+        """(mean [..., 6], log-std [..., 6]).
+
+        ``std_scale`` (<= 1, may be traced) shrinks the upper bound of the standard deviation
+        (a noise schedule; 1: the fixed bounds)."""
         out = self.head(self.encoder(obs, mask))
         mean, raw = jnp.split(out, 2, axis=-1)
+        log_scale = jnp.log(std_scale)
         if self.squash:
-            return mean, jnp.clip(raw, *LOG_STD_BOUNDS)
+            return mean, jnp.clip(raw, LOG_STD_BOUNDS[0], LOG_STD_BOUNDS[1] + log_scale)
         low, high = (math.log(v) for v in VARIANCE_BOUNDS)
-        log_variance = low + (raw + 1.0) * 0.5 * (high - low)
+        log_variance = low + (raw + 1.0) * 0.5 * (high + 2.0 * log_scale - low)
         return mean, 0.5 * log_variance
 
-    def __call__(self, obs, mask, key=None):
+    def __call__(self, obs, mask, key=None, std_scale=1.0):
         """(action, log-probability); the mean action (squashed if so) when ``key`` is None."""
-        mean, log_std = self.distribution(obs, mask)
+        mean, log_std = self.distribution(obs, mask, std_scale)
         if key is None:
             action = jnp.tanh(mean) if self.squash else mean
             return action, jnp.zeros(action.shape[:-1], action.dtype)

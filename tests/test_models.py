@@ -54,3 +54,17 @@ def test_log_probabilities_match_the_gaussian():
     squashed = Actor(nnx.Rngs(0), squash=True)
     sample, _ = squashed(obs, mask, jax.random.key(5))
     assert np.all(np.abs(sample) < 1.0)
+
+
+def test_noise_schedule_shrinks_the_standard_deviation_bound():
+    actor = Actor(nnx.Rngs(0))
+    obs, mask = _sequences(jax.random.key(3), 4, 3, 3)
+    mean, log_std = actor.distribution(obs, mask)
+    narrow_mean, narrow_log_std = actor.distribution(obs, mask, std_scale=0.2)
+    np.testing.assert_allclose(narrow_mean, mean)  # the schedule touches the noise alone
+    assert np.all(np.exp(narrow_log_std) <= 0.2 * math.sqrt(VARIANCE_BOUNDS[1]) * (1 + 1e-4))
+    assert np.all(narrow_log_std < log_std)
+    action, log_prob = actor(obs, mask, jax.random.key(4), std_scale=0.2)
+    z = (np.asarray(action) - np.asarray(mean)) / np.exp(np.asarray(narrow_log_std))
+    expected = (-0.5 * z**2 - np.asarray(narrow_log_std) - 0.5 * math.log(2 * math.pi)).sum(-1)
+    np.testing.assert_allclose(log_prob, expected, rtol=1e-4, atol=1e-3)

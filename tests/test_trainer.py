@@ -27,11 +27,11 @@ def one_arm(generated, tmp_path_factory):
     return tasks, ExpertStore(path)
 
 
-def _trainer(tasks, store, tolerance, expert=True):
+def _trainer(tasks, store, tolerance, expert=True, **overrides):
     env = ReachingEnv(1, EnvConfig(max_steps=4, tolerance=tolerance))
     bank = TaskBank.from_tasks(tasks, 1)
-    config = TrainConfig(num_envs=4, rollout_steps=4, updates_per_iteration=2, batch_size=16, buffer_size=2048,
-                         warmup=8, expert=expert, expert_replays=2, curriculum=False)
+    config = TrainConfig(**{"num_envs": 4, "rollout_steps": 4, "updates_per_iteration": 2, "batch_size": 16, "buffer_size": 2048,
+                            "warmup": 8, "expert": expert, "expert_replays": 2, "curriculum": False, **overrides})
     return Trainer(env, bank, Demonstrations.from_store(store, bank, env, 48), config)
 
 
@@ -56,6 +56,25 @@ def test_expert_experience_enters_only_for_failed_episodes(one_arm):
     plain = _trainer(tasks, store, (1e-4, 1e-4), expert=False)
     state, _ = plain.iteration(plain.init(jax.random.key(0)))
     assert int(state.expert_steps) == 0 and int(state.failed.count) == 0
+
+
+def test_noise_schedule_narrows_exploration_at_tight_levels(one_arm):
+    """With noise_decay 1 at the last level (1 cm, a tenth of the first level's 10 cm) the
+    rollout actions stay within a tenth of the fixed standard-deviation bound of the mean
+    (and, the bound moving in log space, an untrained policy's noise shrinks ~sqrt(10)x)."""
+    tasks, store = one_arm
+
+    def deviations(noise_decay):
+        trainer = _trainer(tasks, store, (1e-4, 1e-4), expert=False, warmup=10**6, curriculum=True, start_level=21,
+                           noise_decay=noise_decay)
+        state, _ = trainer.iteration(trainer.init(jax.random.key(0)))
+        data = jax.tree.map(lambda x: x[: int(state.buffer.size)], state.buffer.data)
+        mean, _ = state.agent.policy()(data.obs, data.mask)
+        return np.abs(np.asarray(data.action - mean))
+
+    fixed, scheduled = deviations(0.0), deviations(1.0)
+    assert scheduled.max() <= 0.1 * np.sqrt(0.1) * 6  # six standard deviations of the narrowed bound
+    assert scheduled.mean() < 0.5 * fixed.mean()
 
 
 def test_failed_queue_is_a_bounded_fifo():

@@ -77,9 +77,9 @@ def create_agent(key, config: SACConfig = SACConfig()) -> Agent:
                  alpha_opt.init(log_alpha), jnp.zeros((), jnp.int32), actor_def, critic_def)
 
 
-def td_target(agent: Agent, batch: Transitions, key, config: SACConfig = SACConfig()) -> jnp.ndarray:
+def td_target(agent: Agent, batch: Transitions, key, config: SACConfig = SACConfig(), std_scale=1.0) -> jnp.ndarray:
     """Soft TD target [N]: r + gamma (1 - terminal) (min target Q(s', a') - alpha log pi(a'|s'))."""
-    next_action, next_log_prob = agent.policy()(batch.next_obs, batch.next_mask, key)
+    next_action, next_log_prob = agent.policy()(batch.next_obs, batch.next_mask, key, std_scale)
     target_q = jnp.minimum(*nnx.merge(agent.critic_def, agent.target_critic)(batch.next_obs, batch.next_mask, next_action))
     continuing = 1.0 - batch.terminal.astype(jnp.float32)
     return jax.lax.stop_gradient(batch.reward + config.gamma * continuing * (target_q - jnp.exp(agent.log_alpha) * next_log_prob))
@@ -91,14 +91,16 @@ def critic_loss(agent: Agent, critic: nnx.State, batch: Transitions, target) -> 
     return jnp.mean((q1 - target) ** 2) + jnp.mean((q2 - target) ** 2), q1
 
 
-def sac_update(agent: Agent, batch: Transitions, key, config: SACConfig = SACConfig()) -> tuple[Agent, dict]:
-    """One gradient step of the critics, the actor (and the temperature if learned)."""
+def sac_update(agent: Agent, batch: Transitions, key, config: SACConfig = SACConfig(), std_scale=1.0) -> tuple[Agent, dict]:
+    """One gradient step of the critics, the actor (and the temperature if learned).
+
+    ``std_scale``: the policy's noise bound at this point of training (see ``Actor``)."""
     next_key, actor_key = jax.random.split(key)
     alpha = jnp.exp(agent.log_alpha)
-    target = td_target(agent, batch, next_key, config)
+    target = td_target(agent, batch, next_key, config, std_scale)
 
     def actor_loss(params):
-        action, log_prob = nnx.merge(agent.actor_def, params)(batch.obs, batch.mask, actor_key)
+        action, log_prob = nnx.merge(agent.actor_def, params)(batch.obs, batch.mask, actor_key, std_scale)
         q = jnp.minimum(*agent.critics()(batch.obs, batch.mask, action))
         return jnp.mean(alpha * log_prob - q), log_prob
 

@@ -75,6 +75,7 @@ class Preset:
     alpha: float | str | None = None  # entropy temperature, "auto" (learned) or None: the SAC variant's default
     target_entropy: float = SACConfig.target_entropy
     gamma: float = SACConfig.gamma
+    noise_decay: float = 0.0  # curriculum noise schedule (TrainConfig.noise_decay)
 
 
 PRESETS = {
@@ -114,6 +115,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--alpha", type=_alpha, help="entropy temperature: a number (fixed) or 'auto' (learned; default: the preset's)")
     parser.add_argument("--target-entropy", type=float, help="target policy entropy of a learned temperature (default -6)")
     parser.add_argument("--gamma", type=float, help="discount factor (default: the preset's)")
+    parser.add_argument("--noise-decay", type=float, help="shrink the policy's standard-deviation bound with the curriculum: "
+                        "x (eps_p / 10 cm) ** P (default: the preset's; 0 = the original's fixed bound)")
     parser.add_argument("--no-curriculum", action="store_true", help="train at 2 cm / 0.1 rad from the start")
     parser.add_argument("--checkpoint-minutes", type=float, default=5.0, help="minutes between checkpoints (default 5)")
     parser.add_argument("--no-buffer-checkpoint", action="store_true", help="leave the replay buffer out of checkpoints")
@@ -144,7 +147,7 @@ def _settings(args) -> dict:
                  "batch_size": args.batch_size, "buffer_size": args.buffer_size, "warmup": args.warmup, "expert_replays": args.expert_replays,
                  "episode_steps": args.episode_steps, "steps": args.steps, "minutes": args.minutes,
                  "arms": list(args.arms) if args.arms else None, "alpha": args.alpha, "target_entropy": args.target_entropy,
-                 "gamma": args.gamma}
+                 "gamma": args.gamma, "noise_decay": args.noise_decay}
     preset.update({k: v for k, v in overrides.items() if v is not None})
     preset["arms"] = list(preset["arms"])
     return {
@@ -203,7 +206,7 @@ def _train_config(settings: dict) -> TrainConfig:
         num_envs=settings["num_envs"], rollout_steps=settings["rollout_steps"], updates_per_iteration=settings["updates_per_iteration"],
         batch_size=settings["batch_size"], buffer_size=settings["buffer_size"], warmup=settings["warmup"], expert=settings["expert"],
         expert_replays=settings["expert_replays"], bc=settings["bc"], curriculum=settings["curriculum"],
-        sac=SACConfig(squash=standard, learn_alpha=learned, alpha=SACConfig.alpha if learned else alpha,
+        noise_decay=settings.get("noise_decay", 0.0), sac=SACConfig(squash=standard, learn_alpha=learned, alpha=SACConfig.alpha if learned else alpha,
                       target_entropy=settings.get("target_entropy", SACConfig.target_entropy), gamma=settings.get("gamma", SACConfig.gamma)),
     )
 

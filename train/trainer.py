@@ -31,7 +31,7 @@ from mjx_multiarm.env import ReachingEnv, State
 from mjx_multiarm.expert.store import ExpertStore
 from mjx_multiarm.wrappers import AutoReset, BatchState, TaskBank, replay_actions
 from train.agent import Agent, SACConfig, bc_update, create_agent, sac_update
-from train.curriculum import Curriculum
+from train.curriculum import LEVELS, Curriculum
 from train.replay import ReplayBuffer, Transitions, ring_write
 
 
@@ -51,6 +51,7 @@ class TrainConfig:
     bc: bool = False
     curriculum: bool = True
     start_level: int = 0
+    noise_decay: float = 0.0  # policy std bound x (eps_p / first level's eps_p) ** noise_decay; 0: fixed
     sac: SACConfig = SACConfig()
 
     def __post_init__(self):
@@ -59,6 +60,8 @@ class TrainConfig:
                 raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.bc and not self.expert:
             raise ValueError("behaviour cloning (bc) learns from expert demonstrations: it needs expert=True")
+        if self.noise_decay < 0:
+            raise ValueError(f"TrainConfig.noise_decay must be >= 0, got {self.noise_decay}")
 
 
 @struct.dataclass
@@ -190,7 +193,7 @@ class Trainer:
         def one_step(carry, step_key):
             state = carry
             envs = state.envs
-            actions, _ = state.agent.policy()(envs.env.obs, envs.env.obs_mask, step_key)
+            actions, _ = state.agent.policy()(envs.env.obs, envs.env.obs_mask, step_key, self._std_scale(state))
             envs, stepped = self.autoreset.step(envs, actions)
             buffer = state.buffer
             if not config.bc:
@@ -226,8 +229,15 @@ class Trainer:
         return state.replace(buffer=state.buffer.insert(transitions, arm_valid), failed=failed,
                              expert_steps=state.expert_steps + valid.sum().astype(jnp.int32))
 
+    def _std_scale(self, state: TrainState) -> jnp.ndarray:
+        """The policy's noise bound at the current curriculum level (1 without a schedule)."""
+        if not self.config.noise_decay:
+            return jnp.ones((), jnp.float32)
+        return (state.curriculum.tolerance[0] / LEVELS[0, 0]) ** self.config.noise_decay
+
     def _updates(self, state: TrainState, key) -> tuple[TrainState, dict]:
         config = self.config
+        std_scale = self._std_scale(state)
 
         def update(agent, update_key):
             sample_key, sac_key = jax.random.split(update_key)
@@ -235,8 +245,7 @@ class Trainer:
             batch = jax.lax.with_sharding_constraint(batch, NamedSharding(self.mesh, PartitionSpec("data")))
             if config.bc:
                 return bc_update(agent, batch, config.sac)
-            agent, metrics = sac_update(agent, batch, sac_key, config.sac)
-            return agent, metrics
+            return sac_update(agent, batch, sac_key, config.sac, std_scale)
 
         def run(agent):
             agent, metrics = jax.lax.scan(update, agent, jax.random.split(key, config.updates_per_iteration))
