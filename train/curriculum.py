@@ -1,19 +1,28 @@
 """The tolerance curriculum of the paper's appendix (Table: Training Curriculum).
 
 Training starts at (10 cm, 0.2 rad) and tightens the reach tolerances over 22 levels down
-to (1 cm, 0.05 rad); the policy graduates to the next level once at least 70% of the
-latest 100 episodes (all of them at the current level) succeeded. The state lives on
-device, so the graduation test runs inside the jitted training loop.
+to (1 cm, 0.05 rad); the policy graduates to the next level once at least 70% of its
+latest 100 episodes at the current level succeeded.
+
+With many environments in parallel, "the latest 100 episodes to end" is a biased sample:
+a success ends after a few steps and a failure only at the step limit, so successes end
+far more often than their share of episodes (a policy that succeeds on 18% of its
+episodes can show 70% among the latest ones to end). The window is therefore kept per
+environment: every environment contributes its latest ``ceil(100 / num_envs)`` completed
+episodes, and the policy graduates once every environment has filled its share. Completed
+episodes other than the one in progress are ordinary samples of the policy's episodes, so
+this rate estimates the per-episode success rate without the length bias. The state lives
+on device, so the graduation test runs inside the jitted training loop.
 """
 
 from __future__ import annotations
+
+import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-
-from train.replay import ring_write
 
 #: (eps_p m, eps_r rad) per level, level 0 first.
 LEVELS = np.array(
@@ -27,19 +36,23 @@ WINDOW = 100
 
 @struct.dataclass
 class Curriculum:
-    """Current level and the outcomes of the latest episodes at that level (a ring)."""
+    """Current level and, per environment, the outcomes of its latest episodes at that level."""
 
     level: jnp.ndarray
-    outcomes: jnp.ndarray  # [WINDOW] bool, success of recent episodes
-    count: jnp.ndarray  # episodes recorded at this level (saturates at WINDOW)
-    position: jnp.ndarray
+    outcomes: jnp.ndarray  # [E, K] bool, a ring per environment
+    count: jnp.ndarray  # [E] episodes recorded at this level (saturates at K)
+    position: jnp.ndarray  # [E] next slot of each ring
 
     @classmethod
-    def start(cls, level: int = 0) -> Curriculum:
+    def start(cls, num_envs: int, level: int = 0) -> Curriculum:
+        """Level ``level`` with empty windows for ``num_envs`` environments."""
         if not 0 <= level < len(LEVELS):
             raise ValueError(f"curriculum level must be in [0, {len(LEVELS) - 1}], got {level}")
-        zero = jnp.zeros((), jnp.int32)
-        return cls(jnp.asarray(level, jnp.int32), jnp.zeros(WINDOW, bool), zero, zero)
+        if num_envs < 1:
+            raise ValueError(f"the curriculum needs at least one environment, got {num_envs}")
+        per_env = math.ceil(WINDOW / num_envs)
+        zeros = jnp.zeros(num_envs, jnp.int32)
+        return cls(jnp.asarray(level, jnp.int32), jnp.zeros((num_envs, per_env), bool), zeros, zeros)
 
     @property
     def tolerance(self) -> jnp.ndarray:
@@ -48,12 +61,19 @@ class Curriculum:
 
     @property
     def success_rate(self) -> jnp.ndarray:
-        return jnp.where(self.count > 0, jnp.sum(self.outcomes) / jnp.maximum(self.count, 1), 0.0)
+        """Success over the recorded episodes at this level (0 before the first)."""
+        recorded = jnp.arange(self.outcomes.shape[1]) < self.count[:, None]
+        return jnp.sum(self.outcomes & recorded) / jnp.maximum(jnp.sum(recorded), 1)
 
     def record(self, ended, success) -> Curriculum:
-        """Add the episodes flagged in ``ended`` [B] (their ``success`` [B]); graduate if due."""
-        outcomes, new = ring_write(self.outcomes, success, ended, self.position)
-        state = Curriculum(self.level, outcomes, jnp.minimum(self.count + new, WINDOW), (self.position + new) % WINDOW)
-        graduate = (state.count >= WINDOW) & (state.success_rate >= GRADUATION_RATE) & (self.level < len(LEVELS) - 1)
-        promoted = Curriculum.start().replace(level=self.level + 1)
+        """Add the episodes that ended at this step (``ended``, ``success``: [E]); graduate if due."""
+        num_envs, per_env = self.outcomes.shape
+        envs = jnp.arange(num_envs)
+        slot = jnp.where(ended, self.position, per_env)  # out of range: not written
+        outcomes = self.outcomes.at[envs, slot].set(success, mode="drop")
+        state = Curriculum(self.level, outcomes, jnp.where(ended, jnp.minimum(self.count + 1, per_env), self.count),
+                           jnp.where(ended, (self.position + 1) % per_env, self.position))
+        full = jnp.all(state.count >= per_env)
+        graduate = full & (state.success_rate >= GRADUATION_RATE) & (self.level < len(LEVELS) - 1)
+        promoted = Curriculum.start(num_envs).replace(level=self.level + 1)
         return jax.tree.map(lambda up, stay: jnp.where(graduate, up, stay), promoted, state)

@@ -10,14 +10,15 @@ from mjx_multiarm.wrappers import TaskBank, run_episodes
 from train.agent import Agent
 
 
-def evaluate_policy(agent: Agent, env: ReachingEnv, bank: TaskBank, sample_key=None) -> dict:
+def evaluate_policy(agent: Agent, env: ReachingEnv, bank: TaskBank, sample_key=None, std_scale: float = 1.0) -> dict:
     """Run every task of ``bank`` once for ``env``'s episode length with the policy's mean
-    actions, or with sampled actions (the training policy) when ``sample_key`` is given;
-    returns :meth:`~mjx_multiarm.wrappers.EpisodeStats.summary`."""
+    actions, or with sampled actions (the training policy, its noise bound scaled by
+    ``std_scale``) when ``sample_key`` is given; returns
+    :meth:`~mjx_multiarm.wrappers.EpisodeStats.summary`."""
     actor_def = agent.actor_def
 
     def policy(states, actor):
         key = None if sample_key is None else jax.random.fold_in(sample_key, states.step[0])
-        return nnx.merge(actor_def, actor)(states.obs, states.obs_mask, key)[0]
+        return nnx.merge(actor_def, actor)(states.obs, states.obs_mask, key, std_scale)[0]
 
     return run_episodes(env, policy, agent.actor, bank).stats(env.max_arms).summary()

@@ -344,7 +344,7 @@ def main(argv=None) -> None:
         _plot(rows, run_dir / "learning_curve.png")
     _log("evaluating the policy at 2 cm / 0.1 rad (mean actions, then sampled actions)...")
     evaluation = evaluate_policy(state.agent, eval_env, eval_bank)
-    sampled = evaluate_policy(state.agent, eval_env, eval_bank, jax.random.key(settings["seed"] + 1))
+    sampled = evaluate_policy(state.agent, eval_env, eval_bank, jax.random.key(settings["seed"] + 1), float(trainer.std_scale(state)))
     env_rate = (int(state.env_steps) - start_steps) / max(elapsed - start_elapsed, 1e-9)
     summary = {
         "env_steps": int(state.env_steps), "updates": int(state.agent.updates), "expert_steps": int(state.expert_steps),

@@ -178,7 +178,7 @@ class Trainer:
         """A fresh run: networks, environments at curriculum level ``start_level``, empty buffer."""
         agent_key, env_key, key = jax.random.split(key, 3)
         config = self.config
-        curriculum = Curriculum.start(config.start_level)
+        curriculum = Curriculum.start(config.num_envs, config.start_level)
         tolerance = curriculum.tolerance if config.curriculum else jnp.asarray(self.env.config.tolerance, jnp.float32)
         envs = jax.jit(self.autoreset.reset, static_argnums=1)(env_key, config.num_envs, tolerance)
         buffer = ReplayBuffer.create(config.buffer_size, self.env.max_arms)
@@ -193,7 +193,7 @@ class Trainer:
         def one_step(carry, step_key):
             state = carry
             envs = state.envs
-            actions, _ = state.agent.policy()(envs.env.obs, envs.env.obs_mask, step_key, self._std_scale(state))
+            actions, _ = state.agent.policy()(envs.env.obs, envs.env.obs_mask, step_key, self.std_scale(state))
             envs, stepped = self.autoreset.step(envs, actions)
             buffer = state.buffer
             if not config.bc:
@@ -229,7 +229,7 @@ class Trainer:
         return state.replace(buffer=state.buffer.insert(transitions, arm_valid), failed=failed,
                              expert_steps=state.expert_steps + valid.sum().astype(jnp.int32))
 
-    def _std_scale(self, state: TrainState) -> jnp.ndarray:
+    def std_scale(self, state: TrainState) -> jnp.ndarray:
         """The policy's noise bound at the current curriculum level (1 without a schedule)."""
         if not self.config.noise_decay:
             return jnp.ones((), jnp.float32)
@@ -237,7 +237,7 @@ class Trainer:
 
     def _updates(self, state: TrainState, key) -> tuple[TrainState, dict]:
         config = self.config
-        std_scale = self._std_scale(state)
+        std_scale = self.std_scale(state)
 
         def update(agent, update_key):
             sample_key, sac_key = jax.random.split(update_key)
