@@ -8,7 +8,8 @@ forward passes (all arms of the team in one batch per control step, jitted, on p
 threads) is summed until the episode ends: the policy's total computation for that
 trajectory. BiRRT plans the same task (start -> goal; planning time only, as the paper).
 Writes ``runtime.md`` / ``runtime.csv`` (medians per team size: policy total, BiRRT plan,
-speed-up, success of each; the policy's median over its successful episodes) and ``runtime.png`` (log-scale plot) to ``--out``.
+speed-up, success of each; the policy's median over its successful episodes) and ``runtime.png`` (log-scale
+plot; hollow markers where the policy solved none of the tasks) to ``--out``.
 """
 
 from __future__ import annotations
@@ -61,6 +62,10 @@ def plot(table: dict, path: pathlib.Path) -> None:
     sizes = sorted(table)
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(sizes, [table[k]["policy_s"] for k in sizes], "o-", label="policy (sum of forward passes until done)")
+    failed = [k for k in sizes if table[k]["policy_success"] == 0]
+    if failed:  # those medians are over failed episodes: not a like-for-like comparison
+        ax.plot(failed, [table[k]["policy_s"] for k in failed], "o", color="white", markeredgecolor="tab:blue",
+                label="policy solved none of these tasks")
     ax.plot(sizes, [table[k]["birrt_s"] for k in sizes], "s-", label="BiRRT (planning time)")
     ax.set_yscale("log")
     ax.set_xlabel("arms")
