@@ -6,9 +6,15 @@ import pathlib
 
 import numpy as np
 import pytest
+from hypothesis import settings
 
 from mjx_multiarm.robot import load_arm
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
+
+# No per-example deadline for property tests: eager JAX compiles on the first call of each
+# shape, which takes seconds on a loaded 2-core machine; speed is measured by benchmarks.
+settings.register_profile("untimed", deadline=None)
+settings.load_profile("untimed")
 
 REFERENCE = pathlib.Path(__file__).resolve().parents[2] / "shared" / "reference" / "ur5"
 

@@ -197,7 +197,7 @@ def test_chunked_and_whole_batch_checks_agree():
         np.testing.assert_allclose(getattr(chunked, field), getattr(whole, field), atol=1e-6, err_msg=field)
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=10)
 @given(st.floats(-5, 5), st.floats(-5, 5), st.floats(-np.pi, np.pi), st.integers(0, 2**31 - 1))
 def test_planar_rigid_motion_of_the_whole_scene_changes_nothing(dx, dy, yaw, seed):
     rng = np.random.default_rng(seed)

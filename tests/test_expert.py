@@ -84,7 +84,7 @@ def test_failures_are_reported_with_their_reason(small_tasks, solved):
     assert STATUSES[capped.status] == "iteration_limit" and capped.iterations == 2 and len(capped.deltas) == 0
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(st.integers(2, 8), st.integers(0, 2**31 - 1), st.booleans())
 def test_decimation_follows_the_polyline(num_points, seed, collinear):
     rng = np.random.default_rng(seed)

@@ -25,7 +25,7 @@ def _brute_force(p1, q1, p2, q2, n=401):
     return np.min(np.linalg.norm(a[:, None] - b[None], axis=-1))
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=200)
 @given(point, point, point, point)
 def test_segment_distance_matches_dense_sampling(p1, q1, p2, q2):
     if min(np.linalg.norm(q1 - p1), np.linalg.norm(q2 - p2)) < 1e-3:
@@ -38,7 +38,7 @@ def test_segment_distance_matches_dense_sampling(p1, q1, p2, q2):
     assert ours >= brute - step - 1e-5
 
 
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=100)
 @given(point, point, point, point, st.floats(-np.pi, np.pi), point)
 def test_segment_distance_is_symmetric_and_rigid_invariant(p1, q1, p2, q2, angle, shift):
     if min(np.linalg.norm(q1 - p1), np.linalg.norm(q2 - p2)) < 1e-3:
@@ -70,7 +70,6 @@ def test_quaternion_conventions(q):
     np.testing.assert_allclose(np.asarray(quat_to_mat(quat_mul(q, q))), rot @ rot, atol=1e-5)
 
 
-@settings(deadline=None)
 @given(st.tuples(coordinate, coordinate, coordinate, coordinate), st.floats(1e-5, 3.0))
 def test_quat_angle_is_accurate_for_small_and_large_angles(q, angle):
     q = np.array(q, np.float64)
