@@ -100,7 +100,10 @@ class Actor(nnx.Module):
 
     def __call__(self, obs, mask, key=None, std_scale=1.0):
         """(action, log-probability); the mean action (squashed if so) when ``key`` is None."""
-        mean, log_std = self.distribution(obs, mask, std_scale)
+        return self.sample(*self.distribution(obs, mask, std_scale), key)
+
+    def sample(self, mean, log_std, key=None):
+        """(action, log-probability) of the distribution (mean, log_std); see ``__call__``."""
         if key is None:
             action = jnp.tanh(mean) if self.squash else mean
             return action, jnp.zeros(action.shape[:-1], action.dtype)

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from train.agent import SACConfig, bc_update, create_agent, critic_loss, sac_update, td_target
+from train.agent import SACConfig, bc_update, create_agent, critic_loss, expert_bc_loss, sac_update, td_target
 from train.replay import ReplayBuffer, Transitions
 
 
@@ -17,7 +17,7 @@ def _batch(key, n, length=3):
     mask = jnp.broadcast_to(jnp.arange(length) >= 1, (n, length))
     return Transitions(obs, mask, jax.random.uniform(keys[1], (n, 6), minval=-1, maxval=1),
                        jax.random.normal(keys[2], (n,)), jax.random.normal(keys[3], (n, length, 107)), mask,
-                       jnp.arange(n) % 5 == 0)
+                       jnp.arange(n) % 5 == 0, jnp.arange(n) % 2 == 0)
 
 
 def test_replay_buffer_packs_valid_rows_into_a_ring():
@@ -64,3 +64,33 @@ def test_learned_temperature_and_behaviour_cloning():
     for _ in range(20):
         first, later = bc(first, batch)
     assert float(later["bc_loss"]) < float(metrics["bc_loss"])
+
+
+def test_expert_bc_loss_counts_expert_rows_the_critic_prefers():
+    batch = _batch(jax.random.key(0), 8)  # rows 0, 2, 4, 6 are expert steps
+    action = jnp.zeros((8, 6))
+    q_data = jnp.array([1.0, 1.0, 1.0, 1.0, -1.0, 1.0, -1.0, 1.0])  # the expert's action is better on rows 0 and 2 only
+    loss, share = expert_bc_loss(action, batch, q_data, jnp.zeros(8))
+    expected = np.mean(np.sum(np.asarray(batch.action)[[0, 2]] ** 2, axis=-1))
+    np.testing.assert_allclose(loss, expected, rtol=1e-6)
+    assert float(share) == pytest.approx(2 / 8)
+    loss, share = expert_bc_loss(action, batch, -q_data - 2, jnp.zeros(8))  # the critic prefers the policy everywhere
+    assert float(loss) == 0.0 and float(share) == 0.0
+
+
+def test_expert_bc_pulls_the_mean_action_toward_the_expert_actions():
+    batch = _batch(jax.random.key(1), 64)
+
+    def expert_error(config):
+        agent = create_agent(jax.random.key(0), config)
+        update = jax.jit(lambda a, k: sac_update(a, batch, k, config))
+        for key in jax.random.split(jax.random.key(2), 30):
+            agent, metrics = update(agent, key)
+        mean = agent.policy()(batch.obs, batch.mask)[0]
+        return float(jnp.mean(jnp.sum((mean - batch.action) ** 2, -1)[batch.expert])), metrics
+
+    pure, metrics = expert_error(SACConfig())
+    assert "expert_bc_loss" not in metrics
+    cloned, metrics = expert_error(SACConfig(expert_bc=1.0))
+    assert 0.0 < float(metrics["expert_bc_share"]) <= 0.5  # only expert rows (half the batch) count
+    assert cloned < 0.7 * pure

@@ -6,6 +6,8 @@ rebuilt inside jitted functions with ``nnx.merge``, so a whole update is one com
 function. The original's choices are the default: fixed entropy temperature 0.001, the
 bounded-variance Gaussian without tanh squashing; ``squash=True, learn_alpha=True`` gives
 standard SAC (tanh-squashed samples, temperature tuned to a target entropy of -6).
+``expert_bc > 0`` adds a Q-filtered behaviour-cloning term on the buffer's expert
+transitions to the actor loss (:func:`expert_bc_loss`).
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ class SACConfig:
     alpha_lr: float = 3e-4
     target_entropy: float = -float(NUM_JOINTS)
     bc_lr: float = 1e-3  # behaviour-cloning ablation
+    expert_bc: float = 0.0  # weight of the Q-filtered expert behaviour-cloning term of the actor loss (0: the original)
 
 
 @struct.dataclass
@@ -85,10 +88,23 @@ def td_target(agent: Agent, batch: Transitions, key, config: SACConfig = SACConf
     return jax.lax.stop_gradient(batch.reward + config.gamma * continuing * (target_q - jnp.exp(agent.log_alpha) * next_log_prob))
 
 
-def critic_loss(agent: Agent, critic: nnx.State, batch: Transitions, target) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """(twin-critic TD loss of parameters ``critic`` against ``target``, q1)."""
+def critic_loss(agent: Agent, critic: nnx.State, batch: Transitions, target) -> tuple[jnp.ndarray, tuple[jnp.ndarray, jnp.ndarray]]:
+    """(twin-critic TD loss of parameters ``critic`` against ``target``, (q1, q2))."""
     q1, q2 = nnx.merge(agent.critic_def, critic)(batch.obs, batch.mask, batch.action)
-    return jnp.mean((q1 - target) ** 2) + jnp.mean((q2 - target) ** 2), q1
+    return jnp.mean((q1 - target) ** 2) + jnp.mean((q2 - target) ** 2), (q1, q2)
+
+
+def expert_bc_loss(action, batch: Transitions, q_data, q_policy) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(behaviour-cloning loss, fraction of the batch it applies to), Q-filtered as Nair et
+    al. 2018 ("Overcoming exploration in RL with demonstrations").
+
+    The squared error between the policy's deterministic ``action`` [N, 6] and the stored
+    action counts on the batch's expert transitions where the critic values the expert's
+    action above the policy's (``q_data`` > ``q_policy``, both [N]), so the policy imitates
+    the expert only where the expert is still the better choice."""
+    applies = batch.expert & (jax.lax.stop_gradient(q_data) > jax.lax.stop_gradient(q_policy))
+    error = jnp.sum((action - batch.action) ** 2, axis=-1)
+    return jnp.sum(jnp.where(applies, error, 0.0)) / jnp.maximum(applies.sum(), 1), jnp.mean(applies)
 
 
 def sac_update(agent: Agent, batch: Transitions, key, config: SACConfig = SACConfig(), std_scale=1.0) -> tuple[Agent, dict]:
@@ -99,13 +115,20 @@ def sac_update(agent: Agent, batch: Transitions, key, config: SACConfig = SACCon
     alpha = jnp.exp(agent.log_alpha)
     target = td_target(agent, batch, next_key, config, std_scale)
 
-    def actor_loss(params):
-        action, log_prob = nnx.merge(agent.actor_def, params)(batch.obs, batch.mask, actor_key, std_scale)
-        q = jnp.minimum(*agent.critics()(batch.obs, batch.mask, action))
-        return jnp.mean(alpha * log_prob - q), log_prob
+    (c_loss, (q1, q2)), c_grads = jax.value_and_grad(lambda p: critic_loss(agent, p, batch, target), has_aux=True)(agent.critic)
 
-    (c_loss, q1), c_grads = jax.value_and_grad(lambda p: critic_loss(agent, p, batch, target), has_aux=True)(agent.critic)
-    (a_loss, log_prob), a_grads = jax.value_and_grad(actor_loss, has_aux=True)(agent.actor)
+    def actor_loss(params):
+        actor = nnx.merge(agent.actor_def, params)
+        mean, log_std = actor.distribution(batch.obs, batch.mask, std_scale)
+        action, log_prob = actor.sample(mean, log_std, actor_key)
+        q = jnp.minimum(*agent.critics()(batch.obs, batch.mask, action))
+        loss = jnp.mean(alpha * log_prob - q)
+        bc, bc_share = jnp.zeros(()), jnp.zeros(())
+        if config.expert_bc:
+            bc, bc_share = expert_bc_loss(actor.sample(mean, log_std)[0], batch, jnp.minimum(q1, q2), q)
+        return loss + config.expert_bc * bc, (log_prob, bc, bc_share)
+
+    (a_loss, (log_prob, bc, bc_share)), a_grads = jax.value_and_grad(actor_loss, has_aux=True)(agent.actor)
     actor_opt, critic_opt, alpha_opt = _optimizers(config)
     c_updates, critic_state = critic_opt.update(c_grads, agent.critic_opt, agent.critic)
     a_updates, actor_state = actor_opt.update(a_grads, agent.actor_opt, agent.actor)
@@ -120,6 +143,8 @@ def sac_update(agent: Agent, batch: Transitions, key, config: SACConfig = SACCon
     new = agent.replace(actor=actor, critic=critic, target_critic=target_critic, actor_opt=actor_state,
                         critic_opt=critic_state, log_alpha=log_alpha, alpha_opt=alpha_state, updates=agent.updates + 1)
     metrics = {"critic_loss": c_loss, "actor_loss": a_loss, "q": jnp.mean(q1), "entropy": -jnp.mean(log_prob), "alpha": alpha}
+    if config.expert_bc:
+        metrics |= {"expert_bc_loss": bc, "expert_bc_share": bc_share}
     return new, metrics
 
 

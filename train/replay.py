@@ -1,9 +1,9 @@
 """An on-device replay buffer of per-arm transitions (a ring, no copying when full).
 
 Each transition is one arm's step: its observation sequence and mask, its action, its
-reward, the next observation sequence and mask, and whether the episode terminated there
+reward, the next observation sequence and mask, whether the episode terminated there
 (success or collision; a timeout is not a termination, so the critic bootstraps through
-it). Inserts take a fixed-size batch with a validity mask (inactive arms, steps beyond a
+it) and whether the step came from an expert demonstration. Inserts take a fixed-size batch with a validity mask (inactive arms, steps beyond a
 demonstration), so every shape is static under ``jit``; valid rows are packed into the
 ring in order. Sampling is uniform over the filled part.
 """
@@ -38,6 +38,7 @@ class Transitions:
     next_obs: jnp.ndarray  # [N, L, 107]
     next_mask: jnp.ndarray  # [N, L]
     terminal: jnp.ndarray  # [N] bool
+    expert: jnp.ndarray  # [N] bool: a step of an expert demonstration
 
 
 @struct.dataclass
@@ -59,7 +60,7 @@ class ReplayBuffer:
         obs = jnp.zeros((capacity, sequence, ELEMENT_SIZE), jnp.float32)
         mask = jnp.zeros((capacity, sequence), bool)
         data = Transitions(obs, mask, jnp.zeros((capacity, NUM_JOINTS), jnp.float32), jnp.zeros(capacity, jnp.float32),
-                           obs, mask, jnp.zeros(capacity, bool))
+                           obs, mask, jnp.zeros(capacity, bool), jnp.zeros(capacity, bool))
         zero = jnp.zeros((), jnp.int32)
         return cls(data, zero, zero, zero)
 

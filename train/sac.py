@@ -76,6 +76,7 @@ class Preset:
     target_entropy: float = SACConfig.target_entropy
     gamma: float = SACConfig.gamma
     noise_decay: float = 0.0  # curriculum noise schedule (TrainConfig.noise_decay)
+    expert_bc: float = 0.0  # Q-filtered expert behaviour cloning in the actor loss (SACConfig.expert_bc)
 
 
 PRESETS = {
@@ -117,6 +118,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--gamma", type=float, help="discount factor (default: the preset's)")
     parser.add_argument("--noise-decay", type=float, help="shrink the policy's standard-deviation bound with the curriculum: "
                         "x (eps_p / 10 cm) ** P (default: the preset's; 0 = the original's fixed bound)")
+    parser.add_argument("--expert-bc", type=float, help="weight of a behaviour-cloning term on the expert transitions in the actor "
+                        "loss, applied where the critic rates the expert's action above the policy's (Nair et al. 2018; "
+                        "default: the preset's; 0 = the original's pure SAC)")
     parser.add_argument("--no-curriculum", action="store_true", help="train at 2 cm / 0.1 rad from the start")
     parser.add_argument("--checkpoint-minutes", type=float, default=5.0, help="minutes between checkpoints (default 5)")
     parser.add_argument("--no-buffer-checkpoint", action="store_true", help="leave the replay buffer out of checkpoints")
@@ -147,7 +151,7 @@ def _settings(args) -> dict:
                  "batch_size": args.batch_size, "buffer_size": args.buffer_size, "warmup": args.warmup, "expert_replays": args.expert_replays,
                  "episode_steps": args.episode_steps, "steps": args.steps, "minutes": args.minutes,
                  "arms": list(args.arms) if args.arms else None, "alpha": args.alpha, "target_entropy": args.target_entropy,
-                 "gamma": args.gamma, "noise_decay": args.noise_decay}
+                 "gamma": args.gamma, "noise_decay": args.noise_decay, "expert_bc": args.expert_bc}
     preset.update({k: v for k, v in overrides.items() if v is not None})
     preset["arms"] = list(preset["arms"])
     return {
@@ -207,7 +211,8 @@ def _train_config(settings: dict) -> TrainConfig:
         batch_size=settings["batch_size"], buffer_size=settings["buffer_size"], warmup=settings["warmup"], expert=settings["expert"],
         expert_replays=settings["expert_replays"], bc=settings["bc"], curriculum=settings["curriculum"],
         noise_decay=settings.get("noise_decay", 0.0), sac=SACConfig(squash=standard, learn_alpha=learned, alpha=SACConfig.alpha if learned else alpha,
-                      target_entropy=settings.get("target_entropy", SACConfig.target_entropy), gamma=settings.get("gamma", SACConfig.gamma)),
+                      target_entropy=settings.get("target_entropy", SACConfig.target_entropy), gamma=settings.get("gamma", SACConfig.gamma),
+                      expert_bc=settings.get("expert_bc", 0.0)),
     )
 
 
@@ -254,6 +259,8 @@ def main(argv=None) -> None:
     args = _parser().parse_args(argv)
     if args.bc and args.no_expert:
         sys.exit("error: --bc learns from the expert demonstrations; it cannot be combined with --no-expert")
+    if args.expert_bc and (args.no_expert or args.bc):
+        sys.exit("error: --expert-bc adds behaviour cloning of expert demonstrations to SAC; it needs them (no --no-expert) and SAC (no --bc)")
     if args.resume:
         run_dir = args.resume
         config_file = run_dir / "config.json"
@@ -324,8 +331,8 @@ def main(argv=None) -> None:
         rows.append({"iteration": iteration, "env_steps": steps, "updates": int(state.agent.updates), "seconds": round(elapsed, 3),
                      "level": int(metrics["level"]), "window_success": float(metrics["window_success"]),
                      "episodes": int(metrics["ended"]), "successes": int(metrics["successes"]),
-                     **{k: float(metrics[k]) for k in ("critic_loss", "actor_loss", "q", "entropy", "alpha") if k in metrics},
-                     **({"bc_loss": float(metrics["bc_loss"])} if "bc_loss" in metrics else {})})
+                     **{k: float(metrics[k]) for k in ("critic_loss", "actor_loss", "q", "entropy", "alpha", "bc_loss", "expert_bc_loss",
+                                                       "expert_bc_share") if k in metrics}})
         now = time.perf_counter()
         if now - last_print > 2.0:
             rate = (steps - start_steps) / max(elapsed - start_elapsed, 1e-9)

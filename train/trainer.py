@@ -126,12 +126,12 @@ class TrainState:
     expert_steps: jnp.ndarray
 
 
-def arm_transitions(before_obs, before_mask, actions, after: State) -> tuple[Transitions, jnp.ndarray]:
+def arm_transitions(before_obs, before_mask, actions, after: State, expert: bool) -> tuple[Transitions, jnp.ndarray]:
     """Per-arm transitions of a batch of stepped environments, flattened over [..., arms].
 
     ``before_obs`` [..., A, A, 107] / ``before_mask`` [..., A, A] are the observations the
-    actions [..., A, 6] were taken from; ``after`` the stepped states. Returns the
-    transitions and their validity (active arms).
+    actions [..., A, 6] were taken from; ``after`` the stepped states; ``expert``: the
+    actions are an expert's. Returns the transitions and their validity (active arms).
     """
     terminal = jnp.broadcast_to((after.done & ~after.truncated)[..., None], after.reward.shape)
 
@@ -141,6 +141,7 @@ def arm_transitions(before_obs, before_mask, actions, after: State) -> tuple[Tra
     transitions = Transitions(
         obs=flat(before_obs, 2), mask=flat(before_mask, 1), action=flat(actions, 1), reward=after.reward.reshape(-1),
         next_obs=flat(after.obs, 2), next_mask=flat(after.obs_mask, 1), terminal=terminal.reshape(-1),
+        expert=jnp.full(terminal.size, expert),
     )
     return transitions, after.task.active.reshape(-1)
 
@@ -197,7 +198,7 @@ class Trainer:
             envs, stepped = self.autoreset.step(envs, actions)
             buffer = state.buffer
             if not config.bc:
-                transitions, valid = arm_transitions(state.envs.env.obs, state.envs.env.obs_mask, actions, stepped)
+                transitions, valid = arm_transitions(state.envs.env.obs, state.envs.env.obs_mask, actions, stepped, expert=False)
                 buffer = buffer.insert(transitions, valid)
             ended = stepped.done
             failed = state.failed
@@ -224,7 +225,7 @@ class Trainer:
         states, valid = jax.vmap(lambda s, a, n: replay_actions(self.env, s, a, n))(start, actions, lengths)
         before_obs = jnp.concatenate([start.obs[:, None], states.obs[:, :-1]], axis=1)
         before_mask = jnp.concatenate([start.obs_mask[:, None], states.obs_mask[:, :-1]], axis=1)
-        transitions, arm_valid = arm_transitions(before_obs, before_mask, actions, states)
+        transitions, arm_valid = arm_transitions(before_obs, before_mask, actions, states, expert=True)
         arm_valid = arm_valid & jnp.repeat(valid.reshape(-1), self.env.max_arms)
         return state.replace(buffer=state.buffer.insert(transitions, arm_valid), failed=failed,
                              expert_steps=state.expert_steps + valid.sum().astype(jnp.int32))
