@@ -15,6 +15,7 @@ from mjx_multiarm.expert.solve import solve_task
 from mjx_multiarm.expert.store import ExpertStore, ExpertTable, save_experts
 from mjx_multiarm.tasks.types import take, with_slots
 from mjx_multiarm.wrappers import TaskBank
+from train.agent import SACConfig
 from train.trainer import Demonstrations, FailedQueue, TrainConfig, Trainer
 
 
@@ -75,6 +76,19 @@ def test_noise_schedule_narrows_exploration_at_tight_levels(one_arm):
     fixed, scheduled = deviations(0.0), deviations(1.0)
     assert scheduled.max() <= 0.1 * np.sqrt(0.1) * 6  # six standard deviations of the narrowed bound
     assert scheduled.mean() < 0.5 * fixed.mean()
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"num_envs": 0}, "num_envs must be >= 1"),
+    ({"bc": True, "expert": False}, "needs expert=True"),
+    ({"noise_decay": -1.0}, "noise_decay must be >= 0"),
+    ({"sac": SACConfig(expert_bc=-1.0)}, "expert_bc must be >= 0"),
+    ({"sac": SACConfig(expert_bc=1.0), "expert": False}, "expert_bc adds behaviour cloning"),
+    ({"sac": SACConfig(expert_bc=1.0), "bc": True}, "expert_bc adds behaviour cloning"),
+])
+def test_inconsistent_train_configs_are_rejected(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        TrainConfig(**overrides)
 
 
 def test_failed_queue_is_a_bounded_fifo():

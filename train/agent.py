@@ -102,7 +102,7 @@ def expert_bc_loss(action, batch: Transitions, q_data, q_policy) -> tuple[jnp.nd
     action counts on the batch's expert transitions where the critic values the expert's
     action above the policy's (``q_data`` > ``q_policy``, both [N]), so the policy imitates
     the expert only where the expert is still the better choice."""
-    applies = batch.expert & (jax.lax.stop_gradient(q_data) > jax.lax.stop_gradient(q_policy))
+    applies = batch.expert & (q_data > q_policy)
     error = jnp.sum((action - batch.action) ** 2, axis=-1)
     return jnp.sum(jnp.where(applies, error, 0.0)) / jnp.maximum(applies.sum(), 1), jnp.mean(applies)
 

@@ -3,9 +3,10 @@
 Each transition is one arm's step: its observation sequence and mask, its action, its
 reward, the next observation sequence and mask, whether the episode terminated there
 (success or collision; a timeout is not a termination, so the critic bootstraps through
-it) and whether the step came from an expert demonstration. Inserts take a fixed-size batch with a validity mask (inactive arms, steps beyond a
-demonstration), so every shape is static under ``jit``; valid rows are packed into the
-ring in order. Sampling is uniform over the filled part.
+it) and whether the step came from an expert demonstration. Inserts take a fixed-size
+batch with a validity mask (inactive arms, steps beyond a demonstration), so every shape
+is static under ``jit``; valid rows are packed into the ring in order. Sampling is
+uniform over the filled part.
 """
 
 from __future__ import annotations

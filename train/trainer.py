@@ -62,6 +62,10 @@ class TrainConfig:
             raise ValueError("behaviour cloning (bc) learns from expert demonstrations: it needs expert=True")
         if self.noise_decay < 0:
             raise ValueError(f"TrainConfig.noise_decay must be >= 0, got {self.noise_decay}")
+        if self.sac.expert_bc < 0:
+            raise ValueError(f"SACConfig.expert_bc must be >= 0, got {self.sac.expert_bc}")
+        if self.sac.expert_bc and (self.bc or not self.expert):
+            raise ValueError("expert_bc adds behaviour cloning of expert demonstrations to SAC: it needs expert=True and bc=False")
 
 
 @struct.dataclass
