@@ -38,7 +38,7 @@ from flax import struct
 
 from mjx_multiarm.collision import SWEEP_RESOLUTION, num_substeps, swept_contacts
 from mjx_multiarm.kinematics import ArmFrames, forward_kinematics
-from mjx_multiarm.observation import NEIGHBOUR_RADIUS, ArmSnapshot, observe
+from mjx_multiarm.observation import NEIGHBOUR_RADIUS, ArmSnapshot, observe, retarget
 from mjx_multiarm.robot import NUM_JOINTS, ArmModel
 from mjx_multiarm.scene import Scene, build_scene
 from mjx_multiarm.tasks.dynamic import PATH_SAMPLES, path_lengths, target_at
@@ -262,12 +262,6 @@ class ReachingEnv:
 
         step = state.step + 1
         arms = self._snapshot(task, joints, frames, state.target_lengths, step)
-        reached = self._reached(task, arms, state.tolerance)
-        any_collision = collided.any()
-        success = jnp.all(reached | ~task.active) & ~any_collision
-        terms = self.rewards
-        reward = terms.collision * collided + terms.reach * reached + terms.team * success
-        timeout = step >= self.config.max_steps
         obs, obs_mask = self._observe(task, state.arms, arms)
         stepped = State(
             task=task,
@@ -275,16 +269,35 @@ class ReachingEnv:
             arms=arms,
             obs=obs,
             obs_mask=obs_mask,
-            reward=jnp.where(task.active, reward, 0.0).astype(jnp.float32),
-            reached=reached,
             collided=collided,
-            success=success,
-            done=success | any_collision | timeout,
-            truncated=timeout & ~success & ~any_collision,
             step=step,
             tolerance=state.tolerance,
             target_lengths=state.target_lengths,
             metrics={"min_distance": contacts.min_distance, "nonfinite_action": task.active & ~finite.all(axis=-1)},
+            **self._outcome(task, arms, collided, state.tolerance, step),
         )
         finished = state.replace(reward=jnp.zeros_like(state.reward))
         return jax.tree.map(lambda old, new: jnp.where(state.done, old, new), finished, stepped)
+
+    def _outcome(self, task: Tasks, arms: ArmSnapshot, collided, tolerance, step) -> dict:
+        """The fields ``reached``, ``success``, ``reward``, ``done`` and ``truncated`` of a step
+        that ended with the arms at ``arms`` (see the module rules)."""
+        reached = self._reached(task, arms, tolerance)
+        any_collision = collided.any()
+        success = jnp.all(reached | ~task.active) & ~any_collision
+        terms = self.rewards
+        reward = terms.collision * collided + terms.reach * reached + terms.team * success
+        timeout = step >= self.config.max_steps
+        return {"reached": reached, "success": success, "reward": jnp.where(task.active, reward, 0.0).astype(jnp.float32),
+                "done": success | any_collision | timeout, "truncated": timeout & ~success & ~any_collision}
+
+    def with_achieved_targets(self, after: State, goal: State) -> State:
+        """Hindsight relabelling (Andrychowicz et al. 2017): the stepped state ``after`` as if
+        every arm's target had been the end-effector pose that arm holds in ``goal``, a later
+        state of the same episode. Targets, observations, reached, success, reward and the
+        done flags are recomputed; collisions stay. Static targets only."""
+        if self.config.dynamic_targets:
+            raise ValueError("hindsight targets replace static targets; this environment moves its targets (dynamic_targets=True)")
+        arms = after.arms.replace(target_pos=goal.arms.ee_pos, target_quat=goal.arms.ee_quat)
+        return after.replace(arms=arms, obs=retarget(after.obs, goal.obs),
+                             **self._outcome(after.task, arms, after.collided, after.tolerance, after.step))

@@ -31,6 +31,9 @@ from flax import struct
 from mjx_multiarm.transforms import canonical_quat, quat_conjugate, quat_mul, quat_to_mat
 
 ELEMENT_SIZE = 107
+#: Slices of an element: end-effector pose at t; target poses at t-1 and t.
+EE_POSE = slice(19, 26)
+TARGET_POSE_PREV, TARGET_POSE = slice(26, 33), slice(33, 40)
 #: Default neighbour radius (m): two workspace radii, as in the original code.
 NEIGHBOUR_RADIUS = 1.7
 
@@ -97,3 +100,11 @@ def observe(base_pos, base_quat, active, prev: ArmSnapshot, now: ArmSnapshot, ra
     obs = jnp.take_along_axis(elements, order[..., None], axis=-2)
     mask = jnp.take_along_axis(seen, order, axis=-1)
     return jnp.where(mask[..., None], obs, 0.0), mask
+
+
+def retarget(obs, goal_obs):
+    """``obs`` [..., 107] with every observed arm's target (at t-1 and t) set to that arm's
+    end-effector pose in ``goal_obs``: an observation of the same arm in the same sequence
+    order at a later step of the episode (the order depends only on the fixed bases)."""
+    goal = goal_obs[..., EE_POSE]
+    return obs.at[..., TARGET_POSE_PREV].set(goal).at[..., TARGET_POSE].set(goal)

@@ -147,6 +147,33 @@ def test_moving_the_whole_scene_changes_no_observation_or_reward(generated):
     assert np.asarray(here.reward).any()
 
 
+def test_hindsight_targets_equal_an_episode_run_with_those_targets(generated):
+    """Relabelling step t with the poses reached at step k gives exactly what the environment
+    returns when the same actions are run on the task whose targets are those poses."""
+    tasks = with_slots(take(generated, np.flatnonzero(generated.num_arms == 3)[:4]), 3)
+    env = ReachingEnv(3, EnvConfig(max_steps=12))
+    run = rollout(env, 10, lambda state: 0.3 * random_policy(7)(state))  # slow: few collisions
+    tolerance = jnp.asarray([0.05, 0.3])
+    _, states, _ = run(TaskBank.from_tasks(tasks, 3).tasks, tolerance)
+    goal_step = 5
+    goal = jax.tree.map(lambda x: x[goal_step], states)
+    retargeted = tasks.replace(target_pos=np.asarray(goal.arms.ee_pos, np.float64), target_quat=np.asarray(goal.arms.ee_quat, np.float64))
+    _, truth, _ = run(TaskBank.from_tasks(retargeted, 3).tasks, tolerance)
+    relabelled = jax.jit(jax.vmap(jax.vmap(env.with_achieved_targets), in_axes=(0, None)))(states, goal)
+    def running(done):  # [T, B]: the episode had not ended before this step (afterwards it is frozen)
+        return ~np.concatenate([np.zeros((1, 4), bool), np.cumsum(np.asarray(done), 0)[:-1] > 0])
+
+    live = running(states.done) & running(truth.done)
+    assert live[: goal_step + 1].sum() >= 8
+    np.testing.assert_allclose(np.asarray(relabelled.obs)[live], np.asarray(truth.obs)[live], atol=2e-5)
+    for name in ("reward", "reached", "success", "done", "truncated"):
+        np.testing.assert_array_equal(np.asarray(getattr(relabelled, name))[live], np.asarray(getattr(truth, name))[live], err_msg=name)
+    at_goal = running(states.done)[goal_step] & ~np.asarray(states.collided[goal_step]).any(-1)
+    assert at_goal.any() and np.asarray(relabelled.success[goal_step])[at_goal].all()  # a pose reaches itself
+    with pytest.raises(ValueError, match="static targets"):
+        ReachingEnv(3, EnvConfig(dynamic_targets=True)).with_achieved_targets(goal, goal)
+
+
 def test_three_arm_task_is_identical_in_three_and_ten_slots(generated):
     tasks = take(generated, np.flatnonzero(generated.num_arms == 3)[:4])
     small, large = ReachingEnv(3, EnvConfig(max_steps=40)), ReachingEnv(10, EnvConfig(max_steps=40))

@@ -49,3 +49,18 @@ def test_cli_runs_end_to_end_and_resumes_exactly(tmp_path, capsys):
         sac.main(["--preset", "tiny", "--run-dir", str(whole)])
     with pytest.raises(SystemExit, match="not a run directory"):
         sac.main(["--resume", str(tmp_path / "nowhere")])
+
+
+@pytest.mark.parametrize("flags, expert_bc, hindsight", [
+    ([], 1.0, 1),
+    (["--no-expert"], 0.0, 1),
+    (["--bc"], 0.0, 0),
+    (["--hindsight", "0", "--expert-bc", "0"], 0.0, 0),
+    (["--preset", "paper"], 0.0, 0),
+])
+def test_preset_additions_give_way_to_the_ablations(flags, expert_bc, hindsight):
+    """The cpu preset's expert term and hindsight goals step aside for the ablations that
+    remove what they need, so ``--bc`` and ``--no-expert`` run without further flags."""
+    settings = sac._settings(sac._parser().parse_args(flags))
+    assert (settings["expert_bc"], settings["hindsight"]) == (expert_bc, hindsight)
+    sac._train_config(settings)  # consistent: raises otherwise

@@ -7,16 +7,18 @@ import subprocess
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from mjx_multiarm.env import EnvConfig, ReachingEnv
 from mjx_multiarm.expert.solve import solve_task
+from mjx_multiarm.observation import EE_POSE, TARGET_POSE, TARGET_POSE_PREV
 from mjx_multiarm.expert.store import ExpertStore, ExpertTable, save_experts
 from mjx_multiarm.tasks.types import take, with_slots
 from mjx_multiarm.wrappers import TaskBank
 from train.agent import SACConfig
-from train.trainer import Demonstrations, FailedQueue, TrainConfig, Trainer
+from train.trainer import Demonstrations, FailedQueue, TrainConfig, Trainer, hindsight_transitions
 
 
 @pytest.fixture(scope="module")
@@ -78,10 +80,45 @@ def test_noise_schedule_narrows_exploration_at_tight_levels(one_arm):
     assert scheduled.mean() < 0.5 * fixed.mean()
 
 
+def test_hindsight_goals_come_from_the_same_episode(one_arm):
+    """Every relabelled transition's goal is the pose its arm reached at that step or a later
+    one of the same episode within the rollout; relabelled copies enter the buffer."""
+    tasks, store = one_arm
+    trainer = _trainer(tasks, store, (0.05, 0.5), expert=False, hindsight=3, rollout_steps=8)
+    state, _ = trainer.iteration(trainer.init(jax.random.key(0)))
+    assert int(state.buffer.inserted) == 4 * 8 * 4  # 32 policy transitions, 3 relabelled copies each
+
+    autoreset, envs = trainer.autoreset, trainer.autoreset.reset(jax.random.key(1), 4)
+    steps = []
+    for t in range(8):
+        actions = jax.random.uniform(jax.random.key(t), (4, 1, 6), minval=-1, maxval=1)
+        after_reset, stepped = autoreset.step(envs, actions)
+        steps.append((envs.env, actions, stepped))
+        envs = after_reset
+    before, actions, stepped = jax.tree.map(lambda *x: jnp.stack(x), *steps)
+    transitions, valid = hindsight_transitions(trainer.env, before, actions, stepped, 5, jax.random.key(2))
+    assert np.asarray(valid).all() and np.asarray(stepped.done).any()  # episodes of 4 steps end inside the rollout
+    reached = np.asarray(stepped.obs)[..., 0, -1, EE_POSE]  # [T, B, 7]: each step's end-effector pose
+    goals = np.asarray(transitions.next_obs)[:, -1, TARGET_POSE].reshape(5, 8, 4, 7)
+    episode = np.cumsum(np.concatenate([np.zeros((1, 4)), np.asarray(stepped.done)[:-1]]), 0)  # [T, B] episode index
+    later_steps = set()
+    for c, t, b in np.ndindex(5, 8, 4):
+        matches = np.flatnonzero(np.abs(reached[:, b] - goals[c, t, b]).max(-1) < 1e-6)
+        assert matches.size and all(k >= t and episode[k, b] == episode[t, b] for k in matches), (c, t, b, matches)
+        later_steps.update(int(k) - t for k in matches)
+    np.testing.assert_array_equal(np.asarray(transitions.obs)[:, -1, TARGET_POSE], np.asarray(transitions.obs)[:, -1, TARGET_POSE_PREV])
+    assert 0 in later_steps and max(later_steps) >= 2
+    own_pose = np.abs(goals - reached[None]).max(-1).reshape(-1) < 1e-6  # goal = the pose this step reached
+    own_reward = np.asarray(transitions.reward)[own_pose]  # reached (0.01) + team (1), or reached and collided (-0.05)
+    assert np.asarray(transitions.terminal)[own_pose].all() and np.isclose(own_reward[:, None], [1.01, -0.04]).any(-1).all() and (own_reward > 1).any()
+
+
 @pytest.mark.parametrize("overrides, message", [
     ({"num_envs": 0}, "num_envs must be >= 1"),
     ({"bc": True, "expert": False}, "needs expert=True"),
     ({"noise_decay": -1.0}, "noise_decay must be >= 0"),
+    ({"hindsight": -1}, "hindsight must be >= 0"),
+    ({"hindsight": 2, "bc": True}, "behaviour cloning"),
     ({"sac": SACConfig(expert_bc=-1.0)}, "expert_bc must be >= 0"),
     ({"sac": SACConfig(expert_bc=1.0), "expert": False}, "expert_bc adds behaviour cloning"),
     ({"sac": SACConfig(expert_bc=1.0), "bc": True}, "expert_bc adds behaviour cloning"),

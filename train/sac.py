@@ -16,8 +16,14 @@ environment steps or ``--minutes`` of training, whichever comes first, then eval
 policy's mean actions (``success_rate``, as the paper's benchmark) and its sampled actions
 (``sampled_success_rate``, the training policy) on the evaluation tasks at 2 cm / 0.1 rad.
 
+The ``cpu`` (and ``tiny``) preset adds two things to the original's SAC: every policy
+transition is stored a second time relabelled with a hindsight goal (``--hindsight 1``) and
+the actor imitates the expert where the critic prefers it (``--expert-bc 1``); ``paper`` is
+the original's algorithm. ``--hindsight 0 --expert-bc 0`` gives the original on any preset.
+
 Ablations (paper section 5): ``--no-expert``, ``--bc`` (behaviour cloning on the expert
-data only), ``--reward selfish``, ``--observe self`` (individualistic observations).
+data only; both drop the preset's expert term), ``--reward selfish``, ``--observe self``
+(individualistic observations).
 ``--sac standard`` uses tanh-squashed samples and a learned temperature instead of the
 original's bounded-variance Gaussian with fixed temperature 0.001.
 """
@@ -77,20 +83,23 @@ class Preset:
     gamma: float = SACConfig.gamma
     noise_decay: float = 0.0  # curriculum noise schedule (TrainConfig.noise_decay)
     expert_bc: float = 0.0  # Q-filtered expert behaviour cloning in the actor loss (SACConfig.expert_bc)
+    hindsight: int = 0  # hindsight-relabelled copies of each policy transition (TrainConfig.hindsight)
 
 
 PRESETS = {
-    # About 10-15 minutes on a 2-core CPU, single-arm tasks.
+    # About 10-15 minutes on a 2-core CPU, single-arm tasks; hindsight goals and expert
+    # behaviour cloning added to the original's SAC (benchmarks/RESULTS.md).
     "cpu": Preset(arms=(1,), train_tasks=512, eval_tasks=128, episode_steps=200, expert_steps=64, num_envs=64,
                   rollout_steps=16, updates_per_iteration=16, batch_size=256, buffer_size=50_000, warmup=2_000,
-                  expert_replays=8, minutes=10.0, steps=10**9),
+                  expert_replays=8, minutes=10.0, steps=10**9, expert_bc=1.0, hindsight=1),
     # The paper's hyperparameters (appendix): batch 4096, warm-up 20,000, replay 50,000, 1-4 arms.
     "paper": Preset(arms=(1, 2, 3, 4), train_tasks=20_000, eval_tasks=1_000, episode_steps=500, expert_steps=128,
                     num_envs=1024, rollout_steps=16, updates_per_iteration=10, batch_size=4096, buffer_size=50_000,
                     warmup=20_000, expert_replays=64, minutes=10**9, steps=700_000_000),
     # For tests and smoke checks: seconds.
     "tiny": Preset(arms=(1,), train_tasks=8, eval_tasks=4, episode_steps=20, expert_steps=48, num_envs=4, rollout_steps=4,
-                   updates_per_iteration=2, batch_size=16, buffer_size=2048, warmup=8, expert_replays=2, minutes=1.0, steps=400),
+                   updates_per_iteration=2, batch_size=16, buffer_size=2048, warmup=8, expert_replays=2, minutes=1.0, steps=400,
+                   expert_bc=1.0, hindsight=1),
 }
 
 
@@ -121,6 +130,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--expert-bc", type=float, help="weight of a behaviour-cloning term on the expert transitions in the actor "
                         "loss, applied where the critic rates the expert's action above the policy's (Nair et al. 2018; "
                         "default: the preset's; 0 = the original's pure SAC)")
+    parser.add_argument("--hindsight", type=int, help="add this many copies of every policy transition relabelled with a "
+                        "hindsight goal (the pose an arm reached later in the episode; Andrychowicz et al. 2017; default: "
+                        "the preset's; 0 = the original's replay)")
     parser.add_argument("--no-curriculum", action="store_true", help="train at 2 cm / 0.1 rad from the start")
     parser.add_argument("--checkpoint-minutes", type=float, default=5.0, help="minutes between checkpoints (default 5)")
     parser.add_argument("--no-buffer-checkpoint", action="store_true", help="leave the replay buffer out of checkpoints")
@@ -146,12 +158,17 @@ def _alpha(text: str) -> float | str:
 def _settings(args) -> dict:
     """The run's configuration as JSON data (stored in config.json, reused by --resume)."""
     preset = dataclasses.asdict(PRESETS[args.preset])
+    if args.no_expert or args.bc:  # ablations of the expert data: the preset's expert term goes with it
+        preset["expert_bc"] = 0.0
+    if args.bc:  # behaviour cloning stores no policy transitions to relabel
+        preset["hindsight"] = 0
     overrides = {"train_tasks": args.train_tasks, "eval_tasks": args.eval_count, "num_envs": args.num_envs,
                  "rollout_steps": args.rollout_steps, "updates_per_iteration": args.updates_per_iteration,
                  "batch_size": args.batch_size, "buffer_size": args.buffer_size, "warmup": args.warmup, "expert_replays": args.expert_replays,
                  "episode_steps": args.episode_steps, "steps": args.steps, "minutes": args.minutes,
                  "arms": list(args.arms) if args.arms else None, "alpha": args.alpha, "target_entropy": args.target_entropy,
-                 "gamma": args.gamma, "noise_decay": args.noise_decay, "expert_bc": args.expert_bc}
+                 "gamma": args.gamma, "noise_decay": args.noise_decay, "expert_bc": args.expert_bc,
+                 "hindsight": args.hindsight}
     preset.update({k: v for k, v in overrides.items() if v is not None})
     preset["arms"] = list(preset["arms"])
     return {
@@ -210,7 +227,8 @@ def _train_config(settings: dict) -> TrainConfig:
         num_envs=settings["num_envs"], rollout_steps=settings["rollout_steps"], updates_per_iteration=settings["updates_per_iteration"],
         batch_size=settings["batch_size"], buffer_size=settings["buffer_size"], warmup=settings["warmup"], expert=settings["expert"],
         expert_replays=settings["expert_replays"], bc=settings["bc"], curriculum=settings["curriculum"],
-        noise_decay=settings.get("noise_decay", 0.0), sac=SACConfig(squash=standard, learn_alpha=learned, alpha=SACConfig.alpha if learned else alpha,
+        noise_decay=settings.get("noise_decay", 0.0), hindsight=settings.get("hindsight", 0),
+        sac=SACConfig(squash=standard, learn_alpha=learned, alpha=SACConfig.alpha if learned else alpha,
                       target_entropy=settings.get("target_entropy", SACConfig.target_entropy), gamma=settings.get("gamma", SACConfig.gamma),
                       expert_bc=settings.get("expert_bc", 0.0)),
     )

@@ -11,7 +11,9 @@ One call of :meth:`Trainer.iteration` (compiled once) does, in the style of Brax
 3. up to ``expert_replays`` queued failed tasks are re-run from their start with the
    expert's stored actions (:func:`mjx_multiarm.wrappers.replay_actions`) and the expert's
    experience, with the environment's rewards, enters the buffer beside the failed attempt;
-4. ``updates_per_iteration`` SAC updates on uniform batches from the buffer once it holds
+4. with ``hindsight`` = C > 0, C copies of every policy transition of the rollout enter the
+   buffer relabelled with hindsight goals (:func:`hindsight_transitions`);
+5. ``updates_per_iteration`` SAC updates on uniform batches from the buffer once it holds
    ``warmup`` transitions (behaviour cloning on expert transitions only with ``bc=True``).
 
 Everything stays on device; the host only reads metrics between iterations.
@@ -29,6 +31,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from mjx_multiarm.env import ReachingEnv, State
 from mjx_multiarm.expert.store import ExpertStore
+from mjx_multiarm.observation import retarget
 from mjx_multiarm.wrappers import AutoReset, BatchState, TaskBank, replay_actions
 from train.agent import Agent, SACConfig, bc_update, create_agent, sac_update
 from train.curriculum import LEVELS, Curriculum
@@ -52,6 +55,7 @@ class TrainConfig:
     curriculum: bool = True
     start_level: int = 0
     noise_decay: float = 0.0  # policy std bound x (eps_p / first level's eps_p) ** noise_decay; 0: fixed
+    hindsight: int = 0  # relabelled copies of each policy transition (hindsight goals); 0: none, as the original
     sac: SACConfig = SACConfig()
 
     def __post_init__(self):
@@ -60,6 +64,10 @@ class TrainConfig:
                 raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.bc and not self.expert:
             raise ValueError("behaviour cloning (bc) learns from expert demonstrations: it needs expert=True")
+        if self.hindsight < 0:
+            raise ValueError(f"TrainConfig.hindsight must be >= 0, got {self.hindsight}")
+        if self.hindsight and self.bc:
+            raise ValueError("hindsight relabels the policy's own transitions; behaviour cloning (bc) stores none")
         if self.noise_decay < 0:
             raise ValueError(f"TrainConfig.noise_decay must be >= 0, got {self.noise_decay}")
         if self.sac.expert_bc < 0:
@@ -150,6 +158,28 @@ def arm_transitions(before_obs, before_mask, actions, after: State, expert: bool
     return transitions, after.task.active.reshape(-1)
 
 
+def hindsight_transitions(env: ReachingEnv, before: State, actions, stepped: State, copies: int, key) -> tuple[Transitions, jnp.ndarray]:
+    """Policy transitions of a rollout relabelled with hindsight goals ("future" strategy of
+    Andrychowicz et al. 2017, within the rollout).
+
+    ``before`` / ``stepped`` [T, B] are the states before and after ``actions`` [T, B, A, 6]
+    at each of T consecutive steps of B auto-resetting environments. Each transition gets
+    ``copies`` goals: the arms' end-effector poses after a step drawn uniformly from that
+    step to the last of its episode within the rollout. Returns flattened transitions
+    [copies * T * B * A] and their validity, as :func:`arm_transitions`.
+    """
+    steps, batch = actions.shape[:2]
+    t = jnp.arange(steps)[:, None]
+    last = jax.lax.cummin(jnp.where(stepped.done, t, steps - 1), axis=0, reverse=True)  # [T, B]: the episode's last step here
+    draw = jax.random.uniform(key, (copies, steps, batch))
+    goal_step = jnp.minimum(t + jnp.floor(draw * (last - t + 1)).astype(jnp.int32), last)
+    goal = jax.tree.map(lambda x: x[goal_step, jnp.arange(batch)], stepped)
+    repeat = lambda tree: jax.tree.map(lambda x: jnp.broadcast_to(x, (copies, *x.shape)), tree)  # noqa: E731
+    relabelled = jax.vmap(jax.vmap(jax.vmap(env.with_achieved_targets)))(repeat(stepped), goal)
+    before_obs = retarget(repeat(before.obs), goal.obs)
+    return arm_transitions(before_obs, repeat(before.obs_mask), repeat(actions), relabelled, expert=False)
+
+
 class Trainer:
     """Builds and runs the training iteration for one environment, task bank and expert set."""
 
@@ -159,6 +189,12 @@ class Trainer:
         split along their batch axis across the devices and the SAC batches too; parameters,
         optimizer states and the replay buffer are replicated, and XLA inserts the
         gradient all-reduce."""
+        if config.hindsight and env.config.dynamic_targets:
+            raise ValueError("hindsight relabelling needs static targets; the environment has dynamic_targets=True")
+        relabelled = config.hindsight * config.rollout_steps * config.num_envs * env.max_arms
+        if relabelled > config.buffer_size:
+            raise ValueError(f"hindsight={config.hindsight} relabels {relabelled} arm transitions per iteration, more than the "
+                             f"replay buffer holds ({config.buffer_size}): raise buffer_size or lower hindsight")
         if config.expert and demonstrations is None:
             raise ValueError("expert demonstrations are enabled but none were given")
         devices = list(devices) if devices is not None else jax.devices()[:1]
@@ -213,11 +249,15 @@ class Trainer:
             if config.curriculum:
                 envs = envs.replace(tolerance=curriculum.tolerance)
             active = stepped.task.active.sum(-1)
+            trajectory = (state.envs.env, actions, stepped) if config.hindsight else None
             state = state.replace(envs=envs, buffer=buffer, failed=failed, curriculum=curriculum,
                                   env_steps=state.env_steps + config.num_envs)
-            return state, {"ended": ended.sum(), "successes": (ended & stepped.success).sum(), "arm_steps": active.sum()}
+            return state, ({"ended": ended.sum(), "successes": (ended & stepped.success).sum(), "arm_steps": active.sum()}, trajectory)
 
-        state, stats = jax.lax.scan(one_step, state, jax.random.split(key, config.rollout_steps))
+        state, (stats, trajectory) = jax.lax.scan(one_step, state, jax.random.split(key, config.rollout_steps))
+        if config.hindsight:
+            transitions, valid = hindsight_transitions(self.env, *trajectory, config.hindsight, jax.random.fold_in(key, 1))
+            state = state.replace(buffer=state.buffer.insert(transitions, valid))
         return state, jax.tree.map(jnp.sum, stats)
 
     def _expert_replays(self, state: TrainState) -> TrainState:
