@@ -64,3 +64,17 @@ def test_preset_additions_give_way_to_the_ablations(flags, expert_bc, hindsight)
     settings = sac._settings(sac._parser().parse_args(flags))
     assert (settings["expert_bc"], settings["hindsight"]) == (expert_bc, hindsight)
     sac._train_config(settings)  # consistent: raises otherwise
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--bc", "--no-expert"], "needs expert=True"),
+    (["--expert-bc", "1", "--no-expert"], "expert_bc adds behaviour cloning"),
+    (["--hindsight", "-1"], "hindsight must be >= 0"),
+    (["--hindsight", "1", "--bc"], "behaviour cloning"),
+])
+def test_inconsistent_flags_fail_before_the_run_starts(tmp_path, flags, message):
+    """The training configuration's checks run before the run directory, tasks or experts exist."""
+    run_dir = tmp_path / "run"
+    with pytest.raises(SystemExit, match=message):
+        sac.main(["--preset", "tiny", "--run-dir", str(run_dir), *flags])
+    assert not run_dir.exists()

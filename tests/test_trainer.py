@@ -13,8 +13,8 @@ import pytest
 
 from mjx_multiarm.env import EnvConfig, ReachingEnv
 from mjx_multiarm.expert.solve import solve_task
-from mjx_multiarm.observation import EE_POSE, TARGET_POSE, TARGET_POSE_PREV
 from mjx_multiarm.expert.store import ExpertStore, ExpertTable, save_experts
+from mjx_multiarm.observation import EE_POSE, TARGET_POSE, TARGET_POSE_PREV
 from mjx_multiarm.tasks.types import take, with_slots
 from mjx_multiarm.wrappers import TaskBank
 from train.agent import SACConfig

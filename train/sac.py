@@ -275,10 +275,6 @@ def _progress(line: str) -> None:
 
 def main(argv=None) -> None:
     args = _parser().parse_args(argv)
-    if args.bc and args.no_expert:
-        sys.exit("error: --bc learns from the expert demonstrations; it cannot be combined with --no-expert")
-    if args.expert_bc and (args.no_expert or args.bc):
-        sys.exit("error: --expert-bc adds behaviour cloning of expert demonstrations to SAC; it needs them (no --no-expert) and SAC (no --bc)")
     if args.resume:
         run_dir = args.resume
         config_file = run_dir / "config.json"
@@ -292,6 +288,11 @@ def main(argv=None) -> None:
     else:
         settings = _settings(args)
         run_dir = args.run_dir or pathlib.Path("runs") / f"{args.preset}-{time.strftime('%Y%m%d-%H%M%S')}"
+    try:
+        config = _train_config(settings)  # inconsistent flags fail here, before a run directory or experts exist
+    except ValueError as error:
+        sys.exit(f"error: {error}")
+    if not args.resume:
         if (run_dir / "config.json").exists():
             sys.exit(f"error: {run_dir} already holds a run; use --resume {run_dir} or another --run-dir")
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -303,7 +304,7 @@ def main(argv=None) -> None:
         sys.exit(f"error: {error}")
     devices = jax.local_devices()[: args.devices] if args.devices else jax.local_devices()
     try:
-        trainer = Trainer(env, bank, demos, _train_config(settings), devices)
+        trainer = Trainer(env, bank, demos, config, devices)
     except ValueError as error:
         sys.exit(f"error: {error}")
     checkpoints = Checkpoints(run_dir / "checkpoints", keep=3, with_buffer=settings["with_buffer"])
