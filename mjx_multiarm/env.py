@@ -19,7 +19,12 @@ Rules (documented here once):
   ``ValueError`` when traced. Actions of inactive slots are ignored.
 - Rewards per arm add up: ``collision`` if the arm collided during the step, ``reach``
   while it is within tolerance of its target, ``team`` to every arm when all arms are
-  within tolerance at once (success). Presets: :data:`REWARDS`.
+  within tolerance at once (success). Presets: :data:`REWARDS`. With
+  ``EnvConfig.shaping`` = k > 0 every active arm also gets Phi(s') - Phi(s), a
+  potential-based shaping term (Ng et al. 1999) with Phi = -k (position error in m +
+  :data:`SHAPING_METRES_PER_RADIAN` x orientation error in rad) against the target of each
+  state: it pays for progress, sums over an episode to k times the error removed, so it
+  gives no reason to end an episode early by colliding.
 - An episode ends on success, on any collision (a failure for the whole team), or after
   ``max_steps`` steps (a failure; ``truncated`` marks it for bootstrapping). Stepping a
   finished episode returns it unchanged, with zero reward.
@@ -60,6 +65,11 @@ class Rewards:
     collision: float  # an arm that collided during the step
 
 
+#: Weight of the orientation error in the shaping potential: 0.2 m per rad, the ratio of the
+#: evaluation tolerances (2 cm, 0.1 rad).
+SHAPING_METRES_PER_RADIAN = EVAL_TOLERANCE[0] / EVAL_TOLERANCE[1]
+
+
 #: ``team``: the paper's cooperative reward; ``selfish``: its ablation without team reward.
 REWARDS = {"team": Rewards(team=1.0, reach=0.01, collision=-0.05), "selfish": Rewards(team=0.0, reach=0.1, collision=-0.05)}
 
@@ -76,6 +86,8 @@ class EnvConfig:
       neighbour_radius: bases within this distance (m) are observed; 1.7 as in the original
         code, 0.85 as in the paper text, 0 for the individualistic ablation (self only).
       reward: a key of :data:`REWARDS`.
+      shaping: k of the potential-based shaping term (module rules); 0, the paper's
+        reward, adds nothing.
       dynamic_targets: targets of tasks with a speed move along their paths
         (:mod:`mjx_multiarm.tasks.dynamic`); otherwise every target is static.
       tolerance: default (eps_p m, eps_r rad) at reset.
@@ -86,6 +98,7 @@ class EnvConfig:
     action_scale: float | tuple[float, ...] | None = None
     neighbour_radius: float = NEIGHBOUR_RADIUS
     reward: str = "team"
+    shaping: float = 0.0
     dynamic_targets: bool = False
     tolerance: tuple[float, float] = EVAL_TOLERANCE
     sweep_resolution: float = SWEEP_RESOLUTION
@@ -100,6 +113,8 @@ class EnvConfig:
             raise ValueError(f"EnvConfig.neighbour_radius must be >= 0, got {self.neighbour_radius}")
         if self.reward not in REWARDS:
             raise ValueError(f"EnvConfig.reward must be one of {sorted(REWARDS)}, got {self.reward!r}")
+        if not self.shaping >= 0:
+            raise ValueError(f"EnvConfig.shaping must be >= 0, got {self.shaping}")
         if len(self.tolerance) != 2 or not all(t > 0 for t in self.tolerance):
             raise ValueError(f"EnvConfig.tolerance must be (eps_p > 0, eps_r > 0), got {self.tolerance}")
         if not self.sweep_resolution > 0:
@@ -204,10 +219,19 @@ class ReachingEnv:
     def _pose(self, task: Tasks, joints) -> ArmFrames:
         return forward_kinematics(self.scene.arm, task.base_pos, task.base_quat, joints)
 
+    @staticmethod
+    def _errors(arms: ArmSnapshot):
+        """Per arm (position error m, orientation error rad) against its target."""
+        return jnp.linalg.norm(arms.ee_pos - arms.target_pos, axis=-1), quat_angle(arms.ee_quat, arms.target_quat)
+
     def _reached(self, task: Tasks, arms: ArmSnapshot, tolerance):
-        position = jnp.linalg.norm(arms.ee_pos - arms.target_pos, axis=-1)
-        angle = quat_angle(arms.ee_quat, arms.target_quat)
+        position, angle = self._errors(arms)
         return task.active & (position < tolerance[0]) & (angle < tolerance[1])
+
+    def _potential(self, arms: ArmSnapshot):
+        """The shaping potential Phi [A] of each arm (module rules)."""
+        position, angle = self._errors(arms)
+        return -self.config.shaping * (position + SHAPING_METRES_PER_RADIAN * angle)
 
     def _observe(self, task: Tasks, prev: ArmSnapshot, now: ArmSnapshot):
         return observe(task.base_pos, task.base_quat, task.active, prev, now, self.config.neighbour_radius)
@@ -274,30 +298,32 @@ class ReachingEnv:
             tolerance=state.tolerance,
             target_lengths=state.target_lengths,
             metrics={"min_distance": contacts.min_distance, "nonfinite_action": task.active & ~finite.all(axis=-1)},
-            **self._outcome(task, arms, collided, state.tolerance, step),
+            **self._outcome(task, state.arms, arms, collided, state.tolerance, step),
         )
         finished = state.replace(reward=jnp.zeros_like(state.reward))
         return jax.tree.map(lambda old, new: jnp.where(state.done, old, new), finished, stepped)
 
-    def _outcome(self, task: Tasks, arms: ArmSnapshot, collided, tolerance, step) -> dict:
+    def _outcome(self, task: Tasks, before: ArmSnapshot, arms: ArmSnapshot, collided, tolerance, step) -> dict:
         """The fields ``reached``, ``success``, ``reward``, ``done`` and ``truncated`` of a step
-        that ended with the arms at ``arms`` (see the module rules)."""
+        from the arms at ``before`` to ``arms`` (see the module rules)."""
         reached = self._reached(task, arms, tolerance)
         any_collision = collided.any()
         success = jnp.all(reached | ~task.active) & ~any_collision
         terms = self.rewards
         reward = terms.collision * collided + terms.reach * reached + terms.team * success
+        if self.config.shaping:
+            reward = reward + self._potential(arms) - self._potential(before)
         timeout = step >= self.config.max_steps
         return {"reached": reached, "success": success, "reward": jnp.where(task.active, reward, 0.0).astype(jnp.float32),
                 "done": success | any_collision | timeout, "truncated": timeout & ~success & ~any_collision}
 
-    def with_achieved_targets(self, after: State, goal: State) -> State:
-        """Hindsight relabelling (Andrychowicz et al. 2017): the stepped state ``after`` as if
-        every arm's target had been the end-effector pose that arm holds in ``goal``, a later
-        state of the same episode. Targets, observations, reached, success, reward and the
-        done flags are recomputed; collisions stay. Static targets only."""
+    def with_achieved_targets(self, before: State, after: State, goal: State) -> State:
+        """Hindsight relabelling (Andrychowicz et al. 2017): the state ``after``, stepped from
+        ``before``, as if every arm's target had been the end-effector pose that arm holds in
+        ``goal``, a later state of the same episode. Targets, observations, reached, success,
+        reward and the done flags are recomputed; collisions stay. Static targets only."""
         if self.config.dynamic_targets:
             raise ValueError("hindsight targets replace static targets; this environment moves its targets (dynamic_targets=True)")
-        arms = after.arms.replace(target_pos=goal.arms.ee_pos, target_quat=goal.arms.ee_quat)
-        return after.replace(arms=arms, obs=retarget(after.obs, goal.obs),
-                             **self._outcome(after.task, arms, after.collided, after.tolerance, after.step))
+        retargeted = [s.arms.replace(target_pos=goal.arms.ee_pos, target_quat=goal.arms.ee_quat) for s in (before, after)]
+        return after.replace(arms=retargeted[1], obs=retarget(after.obs, goal.obs),
+                             **self._outcome(after.task, *retargeted, after.collided, after.tolerance, after.step))

@@ -94,3 +94,22 @@ def test_expert_bc_pulls_the_mean_action_toward_the_expert_actions():
     cloned, metrics = expert_error(SACConfig(expert_bc=1.0))
     assert 0.0 < float(metrics["expert_bc_share"]) <= 0.5  # only expert rows (half the batch) count
     assert cloned < 0.7 * pure
+
+
+@pytest.mark.parametrize("update", ["sac", "bc"])
+def test_deployed_actor_is_a_polyak_average_of_the_actor(update):
+    """With policy_average = r the deployed parameters follow a_k = a_k-1 + r (actor_k - a_k-1);
+    with 0 they are the latest actor."""
+    batch = _batch(jax.random.key(1), 32)
+    for rate in (0.0, 0.3):
+        config = SACConfig(policy_average=rate)
+        step = jax.jit(lambda a, k: sac_update(a, batch, k, config) if update == "sac" else bc_update(a, batch, config))
+        agent = create_agent(jax.random.key(0), config)
+        expected = agent.actor
+        for key in jax.random.split(jax.random.key(2), 3):
+            agent = step(agent, key)[0]
+            expected = jax.tree.map(lambda e, a: e + rate * (a - e) if rate else a, expected, agent.actor)
+        for got, want in zip(jax.tree.leaves(agent.average_actor), jax.tree.leaves(expected)):
+            np.testing.assert_allclose(got, want, atol=1e-6)
+        moved = any(not np.allclose(a, b) for a, b in zip(jax.tree.leaves(agent.average_actor), jax.tree.leaves(agent.actor)))
+        assert moved == bool(rate)

@@ -87,6 +87,36 @@ def test_scripted_ik_solves_most_one_arm_tasks(scripted):
     assert np.all(np.abs(np.diff(joints, axis=0)) <= limit + 1e-6)
 
 
+def _pose_errors(states) -> np.ndarray:
+    """Position error + 0.2 m/rad x orientation error [..., A], in numpy (independent of the env)."""
+    position = np.linalg.norm(np.asarray(states.arms.ee_pos - states.arms.target_pos, np.float64), axis=-1)
+    q1, q2 = (np.asarray(q, np.float64) for q in (states.arms.ee_quat, states.arms.target_quat))
+    q1, q2 = (q / np.linalg.norm(q, axis=-1, keepdims=True) for q in (q1, q2))
+    cos_half = np.abs(np.sum(q1 * q2, axis=-1))
+    sin_half = np.linalg.norm(q1[..., :1] * q2[..., 1:] - q2[..., :1] * q1[..., 1:] - np.cross(q1[..., 1:], q2[..., 1:]), axis=-1)
+    return position + 0.2 * 2 * np.arctan2(sin_half, cos_half)
+
+
+def test_potential_shaping_pays_for_progress_and_telescopes(generated, scripted):
+    """With shaping k each step's reward gains k (e_t - e_t+1), e = position error + 0.2 x
+    orientation error; an episode's shaped return is the paper's plus k (e_0 - e_T)."""
+    bank, final, states, _ = scripted
+    k = 0.5
+    env = ReachingEnv(1, EnvConfig(max_steps=150, shaping=k))
+    shaped_final, shaped, _ = rollout(env, 150)(bank.tasks, jnp.asarray([0.02, 0.1]))
+    np.testing.assert_array_equal(shaped.joints, states.joints)  # shaping changes rewards only
+    start = jax.vmap(lambda task: env.reset(None, task))(bank.tasks)
+    errors = np.concatenate([_pose_errors(start)[None], _pose_errors(states)])[..., 0]  # [T + 1, B]
+    running = np.arange(150)[:, None] < np.asarray(final.step)[None]
+    extra = np.asarray(shaped.reward - states.reward)[..., 0]
+    np.testing.assert_allclose(extra[running], (k * (errors[:-1] - errors[1:]))[running], atol=2e-5)
+    assert not extra[~running].any()  # finished episodes pay nothing
+    last = errors[np.asarray(final.step), np.arange(bank.size)]
+    np.testing.assert_allclose(extra.sum(0), k * (errors[0] - last), atol=1e-4)
+    with pytest.raises(ValueError, match="shaping must be >= 0"):
+        EnvConfig(shaping=-0.1)
+
+
 def test_dynamic_targets_move_at_task_speed_and_can_be_tracked(generated):
     env = ReachingEnv(1, EnvConfig(max_steps=300, dynamic_targets=True))
     bank = teams_of(generated, 1, 1)
@@ -147,11 +177,12 @@ def test_moving_the_whole_scene_changes_no_observation_or_reward(generated):
     assert np.asarray(here.reward).any()
 
 
-def test_hindsight_targets_equal_an_episode_run_with_those_targets(generated):
+@pytest.mark.parametrize("shaping", [0.0, 0.5])
+def test_hindsight_targets_equal_an_episode_run_with_those_targets(generated, shaping):
     """Relabelling step t with the poses reached at step k gives exactly what the environment
     returns when the same actions are run on the task whose targets are those poses."""
     tasks = with_slots(take(generated, np.flatnonzero(generated.num_arms == 3)[:4]), 3)
-    env = ReachingEnv(3, EnvConfig(max_steps=12))
+    env = ReachingEnv(3, EnvConfig(max_steps=12, shaping=shaping))
     run = rollout(env, 10, lambda state: 0.3 * random_policy(7)(state))  # slow: few collisions
     tolerance = jnp.asarray([0.05, 0.3])
     _, states, _ = run(TaskBank.from_tasks(tasks, 3).tasks, tolerance)
@@ -159,19 +190,23 @@ def test_hindsight_targets_equal_an_episode_run_with_those_targets(generated):
     goal = jax.tree.map(lambda x: x[goal_step], states)
     retargeted = tasks.replace(target_pos=np.asarray(goal.arms.ee_pos, np.float64), target_quat=np.asarray(goal.arms.ee_quat, np.float64))
     _, truth, _ = run(TaskBank.from_tasks(retargeted, 3).tasks, tolerance)
-    relabelled = jax.jit(jax.vmap(jax.vmap(env.with_achieved_targets), in_axes=(0, None)))(states, goal)
+    start = jax.vmap(lambda task: env.reset(None, task, tolerance))(TaskBank.from_tasks(tasks, 3).tasks)
+    before = jax.tree.map(lambda first, rest: jnp.concatenate([first[None], rest[:-1]]), start, states)
+    relabelled = jax.jit(jax.vmap(jax.vmap(env.with_achieved_targets), in_axes=(0, 0, None)))(before, states, goal)
     def running(done):  # [T, B]: the episode had not ended before this step (afterwards it is frozen)
         return ~np.concatenate([np.zeros((1, 4), bool), np.cumsum(np.asarray(done), 0)[:-1] > 0])
 
     live = running(states.done) & running(truth.done)
     assert live[: goal_step + 1].sum() >= 8
     np.testing.assert_allclose(np.asarray(relabelled.obs)[live], np.asarray(truth.obs)[live], atol=2e-5)
-    for name in ("reward", "reached", "success", "done", "truncated"):
+    np.testing.assert_allclose(np.asarray(relabelled.reward)[live], np.asarray(truth.reward)[live], atol=1e-6)
+    assert shaping == 0 or np.asarray(relabelled.reward)[live].all()  # the shaping term pays on every step
+    for name in ("reached", "success", "done", "truncated"):
         np.testing.assert_array_equal(np.asarray(getattr(relabelled, name))[live], np.asarray(getattr(truth, name))[live], err_msg=name)
     at_goal = running(states.done)[goal_step] & ~np.asarray(states.collided[goal_step]).any(-1)
     assert at_goal.any() and np.asarray(relabelled.success[goal_step])[at_goal].all()  # a pose reaches itself
     with pytest.raises(ValueError, match="static targets"):
-        ReachingEnv(3, EnvConfig(dynamic_targets=True)).with_achieved_targets(goal, goal)
+        ReachingEnv(3, EnvConfig(dynamic_targets=True)).with_achieved_targets(goal, goal, goal)
 
 
 def test_three_arm_task_is_identical_in_three_and_ten_slots(generated):

@@ -15,13 +15,13 @@ from train import sac
 from train.checkpoint import Checkpoints
 
 
-def _final_actor(run_dir):
-    """The actor parameters of a run's latest checkpoint (raw arrays)."""
+def _final_actor(run_dir, field="actor"):
+    """The actor (or ``field``) parameters of a run's latest checkpoint (raw arrays)."""
     checkpoints = Checkpoints(run_dir / "checkpoints")
     step = checkpoints.latest()
     restored = checkpoints.manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
     checkpoints.close()
-    return jax.tree.leaves(restored["state"]["agent"]["actor"])
+    return jax.tree.leaves(restored["state"]["agent"][field])
 
 
 def test_cli_runs_end_to_end_and_resumes_exactly(tmp_path, capsys):
@@ -33,17 +33,18 @@ def test_cli_runs_end_to_end_and_resumes_exactly(tmp_path, capsys):
     assert summary["env_steps"] == 400 and summary["updates"] > 0
     for name in ("config.json", "metrics.csv", "learning_curve.png", "summary.json", "tasks.npz", "tasks.experts", "policy.npz"):
         assert (whole / name).is_file(), name
-    # the exported policy file holds the final actor, for the Planner and eval.benchmark
+    # the exported policy file holds the final averaged actor, for the Planner and eval.benchmark
     exported = load_policy(whole / "policy.npz")
     assert exported.meta["provenance"]["env_steps"] == 400
-    for a, b in zip(jax.tree.leaves(nnx.state(exported.actor)), _final_actor(whole)):
+    for a, b in zip(jax.tree.leaves(nnx.state(exported.actor)), _final_actor(whole, "average_actor")):
         np.testing.assert_array_equal(np.asarray(a), b)
 
     split = tmp_path / "split"
     sac.main(["--preset", "tiny", "--run-dir", str(split), "--workers", "1", "--steps", "200"])
     sac.main(["--resume", str(split), "--workers", "1", "--steps", "400"])
-    for a, b in zip(_final_actor(whole), _final_actor(split)):
-        np.testing.assert_array_equal(a, b)
+    for field in ("actor", "average_actor"):
+        for a, b in zip(_final_actor(whole, field), _final_actor(split, field)):
+            np.testing.assert_array_equal(a, b)
 
     with pytest.raises(SystemExit, match="already holds a run"):
         sac.main(["--preset", "tiny", "--run-dir", str(whole)])
@@ -71,6 +72,7 @@ def test_preset_additions_give_way_to_the_ablations(flags, expert_bc, hindsight)
     (["--expert-bc", "1", "--no-expert"], "expert_bc adds behaviour cloning"),
     (["--hindsight", "-1"], "hindsight must be >= 0"),
     (["--hindsight", "1", "--bc"], "behaviour cloning"),
+    (["--policy-average", "2"], r"policy_average must be in \[0, 1\]"),
 ])
 def test_inconsistent_flags_fail_before_the_run_starts(tmp_path, flags, message):
     """The training configuration's checks run before the run directory, tasks or experts exist."""
@@ -78,3 +80,10 @@ def test_inconsistent_flags_fail_before_the_run_starts(tmp_path, flags, message)
     with pytest.raises(SystemExit, match=message):
         sac.main(["--preset", "tiny", "--run-dir", str(run_dir), *flags])
     assert not run_dir.exists()
+
+
+@pytest.mark.parametrize("flag", ["--shaping", "--policy-average"])
+def test_negative_rates_are_refused_by_the_parser(flag, capsys):
+    with pytest.raises(SystemExit):
+        sac._parser().parse_args([flag, "-0.5"])
+    assert "expected a number >= 0" in capsys.readouterr().err

@@ -120,6 +120,7 @@ def test_hindsight_goals_come_from_the_same_episode(one_arm):
     ({"hindsight": -1}, "hindsight must be >= 0"),
     ({"hindsight": 2, "bc": True}, "behaviour cloning"),
     ({"sac": SACConfig(expert_bc=-1.0)}, "expert_bc must be >= 0"),
+    ({"sac": SACConfig(policy_average=1.5)}, r"policy_average must be in \[0, 1\]"),
     ({"sac": SACConfig(expert_bc=1.0), "expert": False}, "expert_bc adds behaviour cloning"),
     ({"sac": SACConfig(expert_bc=1.0), "bc": True}, "expert_bc adds behaviour cloning"),
 ])

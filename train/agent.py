@@ -7,7 +7,9 @@ function. The original's choices are the default: fixed entropy temperature 0.00
 bounded-variance Gaussian without tanh squashing; ``squash=True, learn_alpha=True`` gives
 standard SAC (tanh-squashed samples, temperature tuned to a target entropy of -6).
 ``expert_bc > 0`` adds a Q-filtered behaviour-cloning term on the buffer's expert
-transitions to the actor loss (:func:`expert_bc_loss`).
+transitions to the actor loss (:func:`expert_bc_loss`). ``policy_average > 0`` keeps a Polyak
+average of the actor's parameters (``Agent.average_actor``), the policy that evaluation and
+exported policy files use; 0 deploys the latest actor, as the original.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ class SACConfig:
     target_entropy: float = -float(NUM_JOINTS)
     bc_lr: float = 1e-3  # behaviour-cloning ablation
     expert_bc: float = 0.0  # weight of the Q-filtered expert behaviour-cloning term of the actor loss (0: the original)
+    policy_average: float = 0.0  # Polyak rate of the deployed average actor per update (0: the latest actor, as the original)
 
 
 @struct.dataclass
@@ -47,6 +50,7 @@ class Agent:
     """Parameters, target critics and optimizer states; the graph definitions are static."""
 
     actor: nnx.State
+    average_actor: nnx.State  # the deployed policy's parameters (SACConfig.policy_average)
     critic: nnx.State
     target_critic: nnx.State
     actor_opt: optax.OptState
@@ -60,6 +64,11 @@ class Agent:
     def policy(self) -> Actor:
         """The actor module with this agent's parameters."""
         return nnx.merge(self.actor_def, self.actor)
+
+    def with_actor(self, actor: nnx.State, config: SACConfig) -> Agent:
+        """This agent with updated actor parameters, its average following them."""
+        average = optax.incremental_update(actor, self.average_actor, config.policy_average) if config.policy_average else actor
+        return self.replace(actor=actor, average_actor=average)
 
     def critics(self) -> TwinCritic:
         return nnx.merge(self.critic_def, self.critic)
@@ -76,7 +85,7 @@ def create_agent(key, config: SACConfig = SACConfig()) -> Agent:
     critic_def, critic = nnx.split(TwinCritic(nnx.Rngs(critic_key)))
     actor_opt, critic_opt, alpha_opt = _optimizers(config)
     log_alpha = jnp.asarray(math.log(config.alpha), jnp.float32)
-    return Agent(actor, critic, critic, actor_opt.init(actor), critic_opt.init(critic), log_alpha,
+    return Agent(actor, actor, critic, critic, actor_opt.init(actor), critic_opt.init(critic), log_alpha,
                  alpha_opt.init(log_alpha), jnp.zeros((), jnp.int32), actor_def, critic_def)
 
 
@@ -140,7 +149,7 @@ def sac_update(agent: Agent, batch: Transitions, key, config: SACConfig = SACCon
         alpha_updates, alpha_state = alpha_opt.update(-entropy_gap, agent.alpha_opt, agent.log_alpha)
         log_alpha = optax.apply_updates(agent.log_alpha, alpha_updates)
     target_critic = optax.incremental_update(critic, agent.target_critic, config.tau)
-    new = agent.replace(actor=actor, critic=critic, target_critic=target_critic, actor_opt=actor_state,
+    new = agent.with_actor(actor, config).replace(critic=critic, target_critic=target_critic, actor_opt=actor_state,
                         critic_opt=critic_state, log_alpha=log_alpha, alpha_opt=alpha_state, updates=agent.updates + 1)
     metrics = {"critic_loss": c_loss, "actor_loss": a_loss, "q": jnp.mean(q1), "entropy": -jnp.mean(log_prob), "alpha": alpha}
     if config.expert_bc:
@@ -158,4 +167,5 @@ def bc_update(agent: Agent, batch: Transitions, config: SACConfig = SACConfig())
     value, grads = jax.value_and_grad(loss)(agent.actor)
     optimizer = optax.adam(config.bc_lr)
     updates, state = optimizer.update(grads, agent.actor_opt, agent.actor)
-    return agent.replace(actor=optax.apply_updates(agent.actor, updates), actor_opt=state, updates=agent.updates + 1), {"bc_loss": value}
+    new = agent.with_actor(optax.apply_updates(agent.actor, updates), config)
+    return new.replace(actor_opt=state, updates=agent.updates + 1), {"bc_loss": value}

@@ -16,10 +16,12 @@ environment steps or ``--minutes`` of training, whichever comes first, then eval
 policy's mean actions (``success_rate``, as the paper's benchmark) and its sampled actions
 (``sampled_success_rate``, the training policy) on the evaluation tasks at 2 cm / 0.1 rad.
 
-The ``cpu`` (and ``tiny``) preset adds two things to the original's SAC: every policy
-transition is stored a second time relabelled with a hindsight goal (``--hindsight 1``) and
-the actor imitates the expert where the critic prefers it (``--expert-bc 1``); ``paper`` is
-the original's algorithm. ``--hindsight 0 --expert-bc 0`` gives the original on any preset.
+The ``cpu`` (and ``tiny``) preset adds three things to the original's SAC: every policy
+transition is stored a second time relabelled with a hindsight goal (``--hindsight 1``),
+the actor imitates the expert where the critic prefers it (``--expert-bc 1``), and the
+deployed policy (evaluation, ``policy.npz``) is a Polyak average of the actor's parameters
+(``--policy-average 5e-4``); ``paper`` is the original's algorithm. ``--hindsight 0
+--expert-bc 0 --policy-average 0`` gives the original on any preset.
 
 Ablations (paper section 5): ``--no-expert``, ``--bc`` (behaviour cloning on the expert
 data only; both drop the preset's expert term), ``--reward selfish``, ``--observe self``
@@ -84,14 +86,17 @@ class Preset:
     noise_decay: float = 0.0  # curriculum noise schedule (TrainConfig.noise_decay)
     expert_bc: float = 0.0  # Q-filtered expert behaviour cloning in the actor loss (SACConfig.expert_bc)
     hindsight: int = 0  # hindsight-relabelled copies of each policy transition (TrainConfig.hindsight)
+    shaping: float = 0.0  # potential-based reward shaping (EnvConfig.shaping)
+    policy_average: float = 0.0  # Polyak rate of the deployed average actor (SACConfig.policy_average)
 
 
 PRESETS = {
-    # About 10-15 minutes on a 2-core CPU, single-arm tasks; hindsight goals and expert
-    # behaviour cloning added to the original's SAC (benchmarks/RESULTS.md).
+    # About 10-15 minutes on a 2-core CPU, single-arm tasks; hindsight goals, expert
+    # behaviour cloning and an averaged deployed actor added to the original's SAC
+    # (benchmarks/RESULTS.md).
     "cpu": Preset(arms=(1,), train_tasks=512, eval_tasks=128, episode_steps=200, expert_steps=64, num_envs=64,
                   rollout_steps=16, updates_per_iteration=16, batch_size=256, buffer_size=50_000, warmup=2_000,
-                  expert_replays=8, minutes=10.0, steps=10**9, expert_bc=1.0, hindsight=1),
+                  expert_replays=8, minutes=10.0, steps=10**9, expert_bc=1.0, hindsight=1, policy_average=5e-4),
     # The paper's hyperparameters (appendix): batch 4096, warm-up 20,000, replay 50,000, 1-4 arms.
     "paper": Preset(arms=(1, 2, 3, 4), train_tasks=20_000, eval_tasks=1_000, episode_steps=500, expert_steps=128,
                     num_envs=1024, rollout_steps=16, updates_per_iteration=10, batch_size=4096, buffer_size=50_000,
@@ -99,7 +104,7 @@ PRESETS = {
     # For tests and smoke checks: seconds.
     "tiny": Preset(arms=(1,), train_tasks=8, eval_tasks=4, episode_steps=20, expert_steps=48, num_envs=4, rollout_steps=4,
                    updates_per_iteration=2, batch_size=16, buffer_size=2048, warmup=8, expert_replays=2, minutes=1.0, steps=400,
-                   expert_bc=1.0, hindsight=1),
+                   expert_bc=1.0, hindsight=1, policy_average=0.1),
 }
 
 
@@ -133,6 +138,12 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--hindsight", type=int, help="add this many copies of every policy transition relabelled with a "
                         "hindsight goal (the pose an arm reached later in the episode; Andrychowicz et al. 2017; default: "
                         "the preset's; 0 = the original's replay)")
+    parser.add_argument("--shaping", type=_non_negative, help="add potential-based reward shaping: every step pays K x the "
+                        "decrease of (position error in m + 0.2 x orientation error in rad) (Ng et al. 1999; default: the "
+                        "preset's; 0 = the paper's reward)")
+    parser.add_argument("--policy-average", type=_non_negative, help="deploy (evaluate and export) a Polyak average of the "
+                        "actor's parameters, updated at this rate per gradient update (default: the preset's; 0 = the "
+                        "latest actor, as the original)")
     parser.add_argument("--no-curriculum", action="store_true", help="train at 2 cm / 0.1 rad from the start")
     parser.add_argument("--checkpoint-minutes", type=float, default=5.0, help="minutes between checkpoints (default 5)")
     parser.add_argument("--no-buffer-checkpoint", action="store_true", help="leave the replay buffer out of checkpoints")
@@ -155,6 +166,16 @@ def _alpha(text: str) -> float | str:
     return value
 
 
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text}")
+    return value
+
+
 def _settings(args) -> dict:
     """The run's configuration as JSON data (stored in config.json, reused by --resume)."""
     preset = dataclasses.asdict(PRESETS[args.preset])
@@ -168,7 +189,8 @@ def _settings(args) -> dict:
                  "episode_steps": args.episode_steps, "steps": args.steps, "minutes": args.minutes,
                  "arms": list(args.arms) if args.arms else None, "alpha": args.alpha, "target_entropy": args.target_entropy,
                  "gamma": args.gamma, "noise_decay": args.noise_decay, "expert_bc": args.expert_bc,
-                 "hindsight": args.hindsight}
+                 "hindsight": args.hindsight, "shaping": args.shaping,
+                 "policy_average": args.policy_average}
     preset.update({k: v for k, v in overrides.items() if v is not None})
     preset["arms"] = list(preset["arms"])
     return {
@@ -210,7 +232,7 @@ def _prepare(run_dir: pathlib.Path, settings: dict, workers: int, log):
             log(f"planning experts for {tasks.num_tasks} tasks ({workers} processes)...")
             precompute(tasks_path, experts, PlannerConfig(time_limit=30.0), seed=settings["seed"], workers=workers)
         store = ExpertStore(experts)
-    env_config = EnvConfig(max_steps=settings["episode_steps"], reward=settings["reward"],
+    env_config = EnvConfig(max_steps=settings["episode_steps"], reward=settings["reward"], shaping=settings.get("shaping", 0.0),
                            neighbour_radius=0.0 if settings["observe"] == "self" else EnvConfig().neighbour_radius)
     env = ReachingEnv(max_arms, env_config)
     eval_env = ReachingEnv(max_arms, dataclasses.replace(env_config, tolerance=EVAL_TOLERANCE))
@@ -230,7 +252,7 @@ def _train_config(settings: dict) -> TrainConfig:
         noise_decay=settings.get("noise_decay", 0.0), hindsight=settings.get("hindsight", 0),
         sac=SACConfig(squash=standard, learn_alpha=learned, alpha=SACConfig.alpha if learned else alpha,
                       target_entropy=settings.get("target_entropy", SACConfig.target_entropy), gamma=settings.get("gamma", SACConfig.gamma),
-                      expert_bc=settings.get("expert_bc", 0.0)),
+                      expert_bc=settings.get("expert_bc", 0.0), policy_average=settings.get("policy_average", 0.0)),
     )
 
 
@@ -331,7 +353,7 @@ def main(argv=None) -> None:
         meta = {"iteration": iteration, "train_seconds": elapsed, "env_steps": int(state.env_steps),
                 "updates": int(state.agent.updates), "curriculum_level": int(state.curriculum.level), "with_buffer": settings["with_buffer"]}
         checkpoints.save(iteration, state, meta)
-        save_policy(run_dir / "policy.npz", state.agent.actor, trainer.config.sac.squash, policy_env_settings(env),
+        save_policy(run_dir / "policy.npz", state.agent.average_actor, trainer.config.sac.squash, policy_env_settings(env),
                     {"run_dir": str(run_dir), "settings": settings, **meta})
         header = list(rows[0]) if rows else []
         atomic_write(metrics_file, lambda f: f.write((",".join(header) + "\n" + "".join(",".join(str(r[k]) for k in header) + "\n" for r in rows)).encode()))

@@ -72,6 +72,8 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.noise_decay must be >= 0, got {self.noise_decay}")
         if self.sac.expert_bc < 0:
             raise ValueError(f"SACConfig.expert_bc must be >= 0, got {self.sac.expert_bc}")
+        if not 0 <= self.sac.policy_average <= 1:
+            raise ValueError(f"SACConfig.policy_average must be in [0, 1], got {self.sac.policy_average}")
         if self.sac.expert_bc and (self.bc or not self.expert):
             raise ValueError("expert_bc adds behaviour cloning of expert demonstrations to SAC: it needs expert=True and bc=False")
 
@@ -175,7 +177,7 @@ def hindsight_transitions(env: ReachingEnv, before: State, actions, stepped: Sta
     goal_step = jnp.minimum(t + jnp.floor(draw * (last - t + 1)).astype(jnp.int32), last)
     goal = jax.tree.map(lambda x: x[goal_step, jnp.arange(batch)], stepped)
     repeat = lambda tree: jax.tree.map(lambda x: jnp.broadcast_to(x, (copies, *x.shape)), tree)  # noqa: E731
-    relabelled = jax.vmap(jax.vmap(jax.vmap(env.with_achieved_targets)))(repeat(stepped), goal)
+    relabelled = jax.vmap(jax.vmap(jax.vmap(env.with_achieved_targets)))(repeat(before), repeat(stepped), goal)
     before_obs = retarget(repeat(before.obs), goal.obs)
     return arm_transitions(before_obs, repeat(before.obs_mask), repeat(actions), relabelled, expert=False)
 
