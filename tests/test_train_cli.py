@@ -73,17 +73,13 @@ def test_preset_additions_give_way_to_the_ablations(flags, expert_bc, hindsight)
     (["--hindsight", "-1"], "hindsight must be >= 0"),
     (["--hindsight", "1", "--bc"], "behaviour cloning"),
     (["--policy-average", "2"], r"policy_average must be in \[0, 1\]"),
+    (["--policy-average", "-0.5"], r"policy_average must be in \[0, 1\]"),
+    (["--shaping", "-0.5"], "shaping must be >= 0"),
+    (["--episode-steps", "0"], "max_steps must be >= 1"),
 ])
 def test_inconsistent_flags_fail_before_the_run_starts(tmp_path, flags, message):
-    """The training configuration's checks run before the run directory, tasks or experts exist."""
+    """The training and environment configurations' checks run before the run directory, tasks or experts exist."""
     run_dir = tmp_path / "run"
     with pytest.raises(SystemExit, match=message):
         sac.main(["--preset", "tiny", "--run-dir", str(run_dir), *flags])
     assert not run_dir.exists()
-
-
-@pytest.mark.parametrize("flag", ["--shaping", "--policy-average"])
-def test_negative_rates_are_refused_by_the_parser(flag, capsys):
-    with pytest.raises(SystemExit):
-        sac._parser().parse_args([flag, "-0.5"])
-    assert "expected a number >= 0" in capsys.readouterr().err

@@ -138,10 +138,10 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--hindsight", type=int, help="add this many copies of every policy transition relabelled with a "
                         "hindsight goal (the pose an arm reached later in the episode; Andrychowicz et al. 2017; default: "
                         "the preset's; 0 = the original's replay)")
-    parser.add_argument("--shaping", type=_non_negative, help="add potential-based reward shaping: every step pays K x the "
+    parser.add_argument("--shaping", type=float, help="add potential-based reward shaping: every step pays K x the "
                         "decrease of (position error in m + 0.2 x orientation error in rad) (Ng et al. 1999; default: the "
                         "preset's; 0 = the paper's reward)")
-    parser.add_argument("--policy-average", type=_non_negative, help="deploy (evaluate and export) a Polyak average of the "
+    parser.add_argument("--policy-average", type=float, help="deploy (evaluate and export) a Polyak average of the "
                         "actor's parameters, updated at this rate per gradient update (default: the preset's; 0 = the "
                         "latest actor, as the original)")
     parser.add_argument("--no-curriculum", action="store_true", help="train at 2 cm / 0.1 rad from the start")
@@ -163,16 +163,6 @@ def _alpha(text: str) -> float | str:
         raise argparse.ArgumentTypeError(f"expected a positive number or 'auto', got {text!r}") from None
     if not value > 0:
         raise argparse.ArgumentTypeError(f"the temperature must be positive, got {text}")
-    return value
-
-
-def _non_negative(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
-    if not value >= 0:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text}")
     return value
 
 
@@ -209,7 +199,7 @@ def _generated_tasks(path: pathlib.Path, arms, count: int, seed: int):
     return load_tasks(path)[0]
 
 
-def _prepare(run_dir: pathlib.Path, settings: dict, workers: int, log):
+def _prepare(run_dir: pathlib.Path, settings: dict, env_config: EnvConfig, workers: int, log):
     """Training and evaluation tasks, the expert file, environments."""
     arms = settings["arms"]
     if settings["tasks"]:
@@ -232,13 +222,17 @@ def _prepare(run_dir: pathlib.Path, settings: dict, workers: int, log):
             log(f"planning experts for {tasks.num_tasks} tasks ({workers} processes)...")
             precompute(tasks_path, experts, PlannerConfig(time_limit=30.0), seed=settings["seed"], workers=workers)
         store = ExpertStore(experts)
-    env_config = EnvConfig(max_steps=settings["episode_steps"], reward=settings["reward"], shaping=settings.get("shaping", 0.0),
-                           neighbour_radius=0.0 if settings["observe"] == "self" else EnvConfig().neighbour_radius)
     env = ReachingEnv(max_arms, env_config)
     eval_env = ReachingEnv(max_arms, dataclasses.replace(env_config, tolerance=EVAL_TOLERANCE))
     bank = TaskBank.from_tasks(tasks, max_arms)
     demos = Demonstrations.from_store(store, bank, env, settings["expert_steps"]) if store else None
     return env, eval_env, bank, TaskBank.from_tasks(eval_tasks, max_arms), demos
+
+
+def _env_config(settings: dict) -> EnvConfig:
+    """The training environment's configuration (evaluation differs only in tolerance)."""
+    return EnvConfig(max_steps=settings["episode_steps"], reward=settings["reward"], shaping=settings.get("shaping", 0.0),
+                     neighbour_radius=0.0 if settings["observe"] == "self" else EnvConfig().neighbour_radius)
 
 
 def _train_config(settings: dict) -> TrainConfig:
@@ -311,7 +305,8 @@ def main(argv=None) -> None:
         settings = _settings(args)
         run_dir = args.run_dir or pathlib.Path("runs") / f"{args.preset}-{time.strftime('%Y%m%d-%H%M%S')}"
     try:
-        config = _train_config(settings)  # inconsistent flags fail here, before a run directory or experts exist
+        # inconsistent flags fail here, before a run directory or experts exist
+        env_config, config = _env_config(settings), _train_config(settings)
     except ValueError as error:
         sys.exit(f"error: {error}")
     if not args.resume:
@@ -321,7 +316,7 @@ def main(argv=None) -> None:
         atomic_write(run_dir / "config.json", lambda f: f.write(json.dumps(settings, indent=2, sort_keys=True).encode()))
 
     try:
-        env, eval_env, bank, eval_bank, demos = _prepare(run_dir, settings, args.workers, _log)
+        env, eval_env, bank, eval_bank, demos = _prepare(run_dir, settings, env_config, args.workers, _log)
     except (ValueError, FileNotFoundError) as error:
         sys.exit(f"error: {error}")
     devices = jax.local_devices()[: args.devices] if args.devices else jax.local_devices()
