@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mjx_multiarm.collision import capsule_contacts
+from mjx_multiarm.collision import frame_contacts
 from mjx_multiarm.kinematics import forward_kinematics
 from mjx_multiarm.robot import NUM_JOINTS
 from mjx_multiarm.scene import Scene, build_scene
@@ -95,7 +95,7 @@ def _evaluator(scene: Scene):
     @jax.jit
     def evaluate(base_pos, base_quat, joints, active):
         frames = forward_kinematics(scene.arm, base_pos, base_quat, joints)
-        return frames, capsule_contacts(scene, frames.capsules, active)
+        return frames, frame_contacts(scene, frames, active)
 
     return evaluate
 

@@ -18,7 +18,8 @@ capsule encloses, until the summed volume stops improving.  The candidate
 with the smallest union volume wins.
 
 Run ``python -m mjx_multiarm.capsule_fit --meshes DIR`` to fit all links
-(``--sweep`` first compares 1, 2 and 3 capsules per link).
+(``--sweep`` first compares 1, 2 and 3 capsules per link). The gripper stand-in box of
+``ee_link`` is not fitted: the collision model keeps it as the exact box.
 """
 
 import argparse
@@ -43,11 +44,10 @@ DEFAULT_COUNTS = {
     "base_link": 1,
     "shoulder_link": 1,
     "upper_arm_link": 3,
-    "forearm_link": 3,
+    "forearm_link": 4,
     "wrist_1_link": 1,
     "wrist_2_link": 1,
     "wrist_3_link": 1,
-    "ee_link": 1,
 }
 MIN_LENGTH = 1.2e-3  # shortest fitted segment [m]; stays >= 1 mm after rounding
 FIT_SPACING = 5e-3  # surface sample spacing used for fitting [m]
@@ -293,17 +293,15 @@ def _fmt(p):
 
 
 def _load(meshes):
-    """Triangle meshes of every link plus the gripper box, keyed by link name."""
-    links = {name: read_stl(os.path.join(meshes, file)) for name, file in LINK_MESHES.items()}
-    links["ee_link"] = box_triangles(*GRIPPER_BOX)
-    return links
+    """Triangle meshes of every link, keyed by link name."""
+    return {name: read_stl(os.path.join(meshes, file)) for name, file in LINK_MESHES.items()}
 
 
 def main(argv=None):
     """Command line entry point: fit, verify and print capsules for every link."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--meshes", required=True, help="directory of the UR5 collision STLs")
-    parser.add_argument("--counts", default="", help="per-link capsule counts, e.g. base_link=2,ee_link=2")
+    parser.add_argument("--counts", default="", help="per-link capsule counts, e.g. base_link=2,wrist_1_link=2")
     parser.add_argument("--sweep", action="store_true", help="first compare 1, 2 and 3 capsules per link")
     args = parser.parse_args(argv)
     start = time.perf_counter()
@@ -348,6 +346,8 @@ def main(argv=None):
     print(f"total: {total['count']} capsules  mesh volume {total['mesh_volume'] * 1e6:.1f} cm^3  "
           f"union volume {total['union_volume'] * 1e6:.1f} cm^3  "
           f"overhead {total['union_volume'] / total['mesh_volume']:.2f}")
+    centre, size = GRIPPER_BOX  # the original's gripper stand-in: a box, kept exact
+    mjcf += ["<!-- ee_link -->", f'<geom type="box" pos="{_fmt(centre)}" size="{_fmt(size / 2)}"/>']
     print("\n".join(mjcf))
     print(f"runtime {time.perf_counter() - start:.1f} s")
 

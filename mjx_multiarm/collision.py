@@ -1,9 +1,17 @@
-"""Batched capsule collision checking of padded multi-arm scenes in JAX.
+"""Batched collision checking of padded multi-arm scenes in JAX: capsules and boxes.
 
-Every collision geom is a capsule, so every check is a segment-segment distance minus the
-two radii (exactly what MuJoCo C's capsule-capsule test computes), and the ground test is
-the lowest segment end's height minus the radius. Distances are signed: negative means
-penetration. The pairs checked are those of :class:`mjx_multiarm.scene.CollisionPairs`.
+Every collision geom is a capsule or a box (``assets/ur5.xml``), and every distance is
+exact while the geoms are apart (what MuJoCo C's ``mj_geomDistance`` computes):
+
+- capsule-capsule: segment-segment distance minus the two radii;
+- capsule-box: segment-box distance (the convex, piecewise quadratic squared distance
+  along the segment, minimized exactly from its breakpoints) minus the radius;
+- box-box: the smallest segment-box distance over the 24 edges of the two boxes;
+- ground: the lowest capsule end minus the radius, the lowest box corner.
+
+Distances are signed: negative means penetration (for a segment that enters a box, the
+depth of the middle of its part inside). The pairs checked are those of
+:class:`mjx_multiarm.scene.CollisionPairs`.
 
 Coordinates are handled as separate x/y/z arrays inside the kernel so that XLA fuses each
 check into one elementwise loop over all pairs of all scenes.
@@ -11,7 +19,9 @@ check into one elementwise loop over all pairs of all scenes.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import itertools
 import math
 
 import jax
@@ -19,13 +29,19 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mjx_multiarm.kinematics import forward_kinematics
+from mjx_multiarm.kinematics import ArmFrames, forward_kinematics
 from mjx_multiarm.scene import Scene
 
 #: Default largest joint motion between two swept-collision checks (rad).
 SWEEP_RESOLUTION = 0.05
-#: Scenes per collision chunk on CPU (measured best of 16-256 for 4 and 10 arms).
+#: Scenes per chunk of the capsule-capsule check between arms on CPU (measured best of
+#: 16-256 for 4 and 10 arms).
 CPU_CHUNK = 64
+#: Scenes per chunk of the checks with boxes between arms on CPU, for scenes of at least
+#: :data:`BOX_CHUNK_MIN_ARMS` arms (measured: 10 arms 261k -> 314k arm-evaluations/s at
+#: chunks of 128-512; 4 arms are fastest unchunked, 694k vs 551-566k).
+CPU_BOX_CHUNK = 256
+BOX_CHUNK_MIN_ARMS = 5
 
 
 @struct.dataclass
@@ -72,6 +88,125 @@ def segment_distance(p1, q1, p2, q2):
     return jnp.sqrt(_dot(gap, gap))
 
 
+def _segment_aabb_distance(a, b, h):
+    """Signed distance from the segment a + t b, t in [0, 1], to the box |x_k| <= h_k.
+
+    ``a``, ``b``, ``h``: sequences of 3 arrays (the box's coordinates), broadcasting.
+    The squared distance F(t) of the segment's point to the box is convex and piecewise
+    quadratic in t, with breakpoints where a coordinate crosses a face plane; its slope is
+    monotone and linear between breakpoints, so evaluating the slope at the breakpoints and
+    the ends brackets the minimizer in one linear piece, where it is exact. Where the
+    segment meets the box (slab clipping finds the part inside) the result is the
+    non-positive signed distance of the middle of that part. Everything is elementwise
+    (running extrema, no stacking), so XLA fuses it into one loop.
+    """
+
+    def slope(t):  # F'(t) / 2
+        total = 0.0
+        for k in range(3):
+            x = a[k] + t * b[k]
+            total = total + b[k] * (x - jnp.clip(x, -h[k], h[k]))
+        return total
+
+    zero = jnp.zeros_like(a[0] + b[0] + h[0])
+    inf = jnp.asarray(jnp.inf, zero.dtype)
+    candidates, enter, leave = [zero, zero + 1.0], zero, zero + 1.0
+    for k in range(3):
+        moving = jnp.abs(b[k]) > 1e-12
+        inverse = 1.0 / jnp.where(moving, b[k], 1.0)
+        t1, t2 = (-h[k] - a[k]) * inverse, (h[k] - a[k]) * inverse
+        candidates += [jnp.where(moving, jnp.clip(t1, 0.0, 1.0), 0.0), jnp.where(moving, jnp.clip(t2, 0.0, 1.0), 0.0)]
+        # The part of the segment inside slab k (all of it, or nothing, when parallel).
+        within = jnp.abs(a[k]) <= h[k]
+        enter = jnp.maximum(enter, jnp.where(moving, jnp.minimum(t1, t2), jnp.where(within, -inf, inf)))
+        leave = jnp.minimum(leave, jnp.where(moving, jnp.maximum(t1, t2), jnp.where(within, inf, -inf)))
+    # The slope is nondecreasing: bracket its zero by the last candidate with slope <= 0
+    # and the first with slope >= 0.
+    lo_t, lo_g, hi_t, hi_g = -inf, -inf, inf, inf
+    for t in candidates:
+        g = slope(t)
+        lo_t, lo_g = jnp.where(g <= 0, jnp.maximum(lo_t, t), lo_t), jnp.where(g <= 0, jnp.maximum(lo_g, g), lo_g)
+        hi_t, hi_g = jnp.where(g >= 0, jnp.minimum(hi_t, t), hi_t), jnp.where(g >= 0, jnp.minimum(hi_g, g), hi_g)
+    plateau = hi_t <= lo_t  # F is flat on [hi_t, lo_t]
+    linear = lo_t - lo_g * (hi_t - lo_t) / jnp.where(plateau, 1.0, hi_g - lo_g)
+    best = jnp.where(plateau, hi_t, linear)
+    best = jnp.where(jnp.isinf(lo_t), 0.0, jnp.where(jnp.isinf(hi_t), 1.0, best))
+    outside = [a[k] + best * b[k] for k in range(3)]
+    outside = [x - jnp.clip(x, -h[k], h[k]) for k, x in enumerate(outside)]
+    distance = jnp.sqrt(sum(o * o for o in outside))
+    middle = 0.5 * (enter + leave)
+    depth = functools.reduce(jnp.maximum, [jnp.abs(a[k] + middle * b[k]) - h[k] for k in range(3)])
+    return jnp.where(enter <= leave, jnp.minimum(depth, 0.0), distance)
+
+
+def segment_box_distance(p, q, centre, axes, half):
+    """Signed distance from segment [p, q] to a box; coordinates first.
+
+    Args:
+      p, q, centre: [3, ...]; axes: [3, 3, ...], ``axes[k]`` the box's unit axis k;
+      half: [3, ...] half sizes along those axes.
+
+    Exact while apart; negative where the segment enters the box (see
+    :func:`_segment_aabb_distance`).
+    """
+    rel, d = p - centre, q - p
+    return _segment_aabb_distance([_dot(rel, axes[k]) for k in range(3)], [_dot(d, axes[k]) for k in range(3)],
+                                  [half[k] for k in range(3)])
+
+
+def box_box_distance(centre_a, axes_a, half_a, centre_b, axes_b, half_b):
+    """Signed distance between two boxes (coordinates first, as :func:`segment_box_distance`).
+
+    Apart (no separating-axis test fails): exact, the smallest of A's 12 edges against B
+    and B's 8 corners against A. The closest points of two separated boxes are an edge
+    point of A, or a face point of A facing a corner of B or a B edge or face parallel to
+    it, whose extreme points are B's corners or lie on A's edges. Overlapping: the
+    separating-axis test's (negative) smallest penetration along the 15 axes.
+    """
+    # B in A's frame: rotation r[i][j] = a_i . b_j, centre offset t_i = a_i . (cB - cA).
+    r = [[_dot(axes_a[i], axes_b[j]) for j in range(3)] for i in range(3)]
+    t = [_dot(centre_b - centre_a, axes_a[i]) for i in range(3)]
+    ha, hb = [half_a[i] for i in range(3)], [half_b[j] for j in range(3)]
+    eps = 1e-6  # guards the near-parallel cross-product axes
+    ar = [[jnp.abs(r[i][j]) + eps for j in range(3)] for i in range(3)]
+
+    # Separating-axis test (Gottschalk et al. 1996): the largest gap over the 15 axes.
+    gaps = []
+    for i in range(3):  # A's face normals
+        gaps.append(jnp.abs(t[i]) - ha[i] - sum(hb[j] * ar[i][j] for j in range(3)))
+    for j in range(3):  # B's face normals
+        gaps.append(jnp.abs(sum(t[i] * r[i][j] for i in range(3))) - hb[j] - sum(ha[i] * ar[i][j] for i in range(3)))
+    for i, j in itertools.product(range(3), range(3)):  # a_i x b_j
+        i1, i2 = (i + 1) % 3, (i + 2) % 3
+        j1, j2 = (j + 1) % 3, (j + 2) % 3
+        centre = jnp.abs(t[i2] * r[i1][j] - t[i1] * r[i2][j])
+        extent = ha[i1] * ar[i2][j] + ha[i2] * ar[i1][j] + hb[j1] * ar[i][j2] + hb[j2] * ar[i][j1]
+        length = jnp.sqrt(jnp.maximum(1.0 - r[i][j] ** 2, 0.0)) + eps
+        gaps.append((centre - extent) / length)
+    overlap_gap = functools.reduce(jnp.maximum, gaps)
+
+    # A's edges against B, in B's frame: A's corners there are c + sum_i s_i h_i a_i with
+    # c = -R^T t and a_i = row i of R.
+    centre_in_b = [-sum(t[i] * r[i][j] for i in range(3)) for j in range(3)]
+    nearest = None
+    for k, s1, s2 in _BOX_EDGES:
+        i1, i2 = [m for m in range(3) if m != k]
+        start = [centre_in_b[j] + s1 * ha[i1] * r[i1][j] + s2 * ha[i2] * r[i2][j] - ha[k] * r[k][j] for j in range(3)]
+        step = [2.0 * ha[k] * r[k][j] for j in range(3)]
+        d = _segment_aabb_distance(start, step, hb)
+        nearest = d if nearest is None else jnp.minimum(nearest, d)
+    # B's corners against A, in A's frame: t + sum_j s_j h_j b_j, b_j = column j of R.
+    for signs in itertools.product((-1.0, 1.0), repeat=3):
+        corner = [t[i] + sum(signs[j] * hb[j] * r[i][j] for j in range(3)) for i in range(3)]
+        excess = [c - jnp.clip(c, -ha[i], ha[i]) for i, c in enumerate(corner)]
+        nearest = jnp.minimum(nearest, jnp.sqrt(sum(e * e for e in excess)))
+    return jnp.where(overlap_gap < 0.0, overlap_gap, nearest)
+
+
+# The 12 edges of a box as (axis along the edge, signs of the two other axes).
+_BOX_EDGES = [(k, s1, s2) for k in range(3) for s1 in (-1.0, 1.0) for s2 in (-1.0, 1.0)]
+
+
 def _arm_pair_tables(max_arms: int):
     """Static arm pairs (i < j) and the [max_arms, npairs] incidence of arms in pairs."""
     first, second = np.triu_indices(max_arms, k=1)
@@ -81,63 +216,165 @@ def _arm_pair_tables(max_arms: int):
     return first, second, incidence
 
 
-def _flat_contacts(scene: Scene, capsules, active) -> Contacts:
-    """The kernel on a flat batch: capsules [N, A, C, 2, 3], active [N, A] -> fields [N, A]."""
-    pairs, radius = scene.pairs, scene.arm.capsule_radius
-    num_arms = capsules.shape[1]
-    # Scenes go last, coordinates first: every operation below is elementwise over rows of
-    # scenes, which XLA vectorizes; reductions run over the leading (small) axes.
-    ends = jnp.moveaxis(capsules, (4, 3, 0), (0, 1, 4))
-    p, q = ends[:, 0], ends[:, 1]  # [3, A, C, N]
-    act = active.T  # [A, N]
-    inf = jnp.asarray(jnp.inf, capsules.dtype)
+@dataclasses.dataclass(frozen=True)
+class _Geoms:
+    """Posed geoms of one type inside the kernel: coordinates first, then ``middle`` dims
+    (arms, geoms, and broadcast axes added by :meth:`expand`), then scenes.
 
-    # Between arms: every capsule pair of every arm pair (i < j).
-    first, second, incidence = _arm_pair_tables(num_arms)
-    if len(first):
-        pi, qi = p[:, first, :, None], q[:, first, :, None]  # [3, P, C, 1, N]
-        pj, qj = p[:, second, None, :], q[:, second, None, :]  # [3, P, 1, C, N]
-        reach = jnp.asarray(radius[:, None] + radius[None, :], capsules.dtype)[..., None]
-        dist = segment_distance(pi, qi, pj, qj) - reach
-        dist = jnp.where(pairs.between_arms[..., None], dist, inf).min(axis=(1, 2))  # [P, N]
-        dist = jnp.where(act[first] & act[second], dist, inf)
-        between = jnp.where(incidence[..., None], dist[None], inf).min(axis=1)  # [A, N]
-    else:
-        between = jnp.full(act.shape, inf)
+    Capsules: ``arrays`` = (p, q, radius); boxes: (centre, axes, half sizes); every array
+    has all the middle dims (the sizes with length 1 along arms) and the scenes axis
+    (length 1 for the sizes).
+    """
 
-    # Self: non-adjacent capsule pairs of one arm.
-    a, b = pairs.self_pairs[:, 0], pairs.self_pairs[:, 1]
-    reach = jnp.asarray(radius[a] + radius[b], capsules.dtype)[:, None]
-    self_dist = segment_distance(p[:, :, a], q[:, :, a], p[:, :, b], q[:, :, b]) - reach  # [A, S, N]
-    self_dist = self_dist.min(axis=1, initial=jnp.inf)
+    is_box: bool
+    arrays: tuple
+    middle: int = 2
 
-    # Ground: lowest end point of each capsule above z = 0.
-    g = pairs.ground
-    lowest = jnp.minimum(p[2][:, g], q[2][:, g]) - jnp.asarray(radius[g], capsules.dtype)[:, None]
-    ground = lowest.min(axis=1, initial=jnp.inf)
+    def _axis(self, x, axis: int) -> int:
+        return x.ndim - self.middle - 1 + axis
 
-    def per_arm(x):  # [A, N] -> [N, A], inactive arms at +inf
-        return jnp.where(act, x, inf).T
+    def take(self, axis: int, index) -> _Geoms:
+        """Select along middle axis ``axis`` (0: arms, 1: geoms) with a numpy index array."""
+        arrays = tuple(x if x.shape[self._axis(x, axis)] == 1 else jnp.take(x, index, axis=self._axis(x, axis))
+                       for x in self.arrays)
+        return _Geoms(self.is_box, arrays, self.middle)
 
-    return Contacts(between_arms=per_arm(between), within_arm=per_arm(self_dist), ground=per_arm(ground))
+    def expand(self, axis: int) -> _Geoms:
+        """Insert a broadcast axis at middle position ``axis``."""
+        arrays = tuple(jnp.expand_dims(x, self._axis(x, axis)) for x in self.arrays)
+        return _Geoms(self.is_box, arrays, self.middle + 1)
+
+    @property
+    def count(self) -> int:
+        """Geoms per arm (of an unexpanded set)."""
+        return self.arrays[0].shape[-2]
 
 
-def capsule_contacts(scene: Scene, capsules, active, chunk: int | None = None) -> Contacts:
-    """Signed distances of posed capsules.
+def _pair_distance(a: _Geoms, b: _Geoms):
+    """Signed distances of two broadcasting sets of posed geoms (any two types)."""
+    if not (a.is_box or b.is_box):
+        return segment_distance(*a.arrays[:2], *b.arrays[:2]) - (a.arrays[2] + b.arrays[2])
+    if a.is_box and b.is_box:
+        return box_box_distance(*a.arrays, *b.arrays)
+    capsule, box = (a, b) if b.is_box else (b, a)
+    return segment_box_distance(*capsule.arrays[:2], *box.arrays) - capsule.arrays[2]
+
+
+def _between_arms(types, first, second, checked, boxes: bool) -> jnp.ndarray | None:
+    """Per arm pair (first[i], second[i]), the smallest signed distance over the geom pairs
+    marked in ``checked`` [ngeom, ngeom] (capsules, then boxes): [P, N], or None if none.
+
+    ``boxes`` selects the blocks with a box, else the capsule-capsule block. Each block is
+    a dense broadcast of one arm's geoms against the other's, masked by ``checked``.
+    """
+    offsets = np.cumsum([0] + [t.count for t in types])
+    result = None
+    for (ta, a), (tb, b) in itertools.product(enumerate(types), repeat=2):
+        mask = checked[offsets[ta]:offsets[ta + 1], offsets[tb]:offsets[tb + 1]]
+        if not mask.any() or (a.is_box or b.is_box) != boxes or ta > tb:
+            continue
+        d = _pair_distance(a.take(0, first).expand(2), b.take(0, second).expand(1))  # [P, Ga, Gb, N]
+        d = jnp.where(mask[..., None], d, jnp.inf).min(axis=(1, 2))
+        if ta != tb:  # the transposed block: b's geoms of the first arm, a's of the second
+            t = _pair_distance(a.take(0, second).expand(2), b.take(0, first).expand(1))
+            d = jnp.minimum(d, jnp.where(mask[..., None], t, jnp.inf).min(axis=(1, 2)))
+        result = d if result is None else jnp.minimum(result, d)
+    return result
+
+
+def _within_arm(types, pairs) -> jnp.ndarray:
+    """Per arm, the smallest signed distance over its self pairs [S, 2] (geom indices): [A, N].
+
+    Capsule pairs are gathered; blocks with boxes (an arm has few) are dense broadcasts of
+    the two types masked by the pair list, as between arms.
+    """
+    offsets = np.cumsum([0] + [t.count for t in types])
+    checked = np.zeros((offsets[-1], offsets[-1]), bool)
+    checked[pairs[:, 0], pairs[:, 1]] = True
+    result = None
+    for (ta, a), (tb, b) in itertools.product(enumerate(types), repeat=2):
+        mask = checked[offsets[ta]:offsets[ta + 1], offsets[tb]:offsets[tb + 1]]
+        if not mask.any():
+            continue
+        if a.is_box or b.is_box:
+            d = _pair_distance(a.expand(2), b.expand(1))  # [A, Ga, Gb, N]
+            d = jnp.where(mask[..., None], d, jnp.inf).min(axis=(1, 2))
+        else:
+            ga, gb = np.nonzero(mask)
+            d = _pair_distance(a.take(1, ga), b.take(1, gb)).min(axis=1)
+        result = d if result is None else jnp.minimum(result, d)
+    return result
+
+
+def _posed_types(arm, capsules, boxes) -> list[_Geoms]:
+    """Kernel layout of a flat batch: capsules [N, A, C, 2, 3], boxes [N, A, B, 4, 3].
+
+    Scenes go last, coordinates first: every operation of the kernel is elementwise over
+    rows of scenes, which XLA vectorizes; reductions run over the leading (small) axes.
+    """
+    ends = jnp.moveaxis(capsules, (4, 3, 0), (0, 1, 4))  # [3, 2, A, C, N]
+    frames = jnp.moveaxis(boxes, (4, 3, 0), (0, 1, 4))  # [3, 4, A, B, N]
+    radius = jnp.asarray(arm.capsule_radius, capsules.dtype)[None, :, None]  # [1, C, 1]
+    half = jnp.asarray(arm.box_half.T, boxes.dtype)[:, None, :, None]  # [3, 1, B, 1]
+    types = [_Geoms(False, (ends[:, 0], ends[:, 1], radius)),
+             _Geoms(True, (frames[:, 0], jnp.swapaxes(frames[:, 1:], 0, 1), half))]
+    return [t for t in types if t.count]
+
+
+def _flat_between(scene: Scene, boxes_only: bool, capsules, boxes) -> jnp.ndarray | None:
+    """Per arm pair, the smallest distance on a flat batch: [P, N] (None: no such pairs).
+
+    ``boxes_only`` selects the blocks with a box, else the capsule-capsule block.
+    """
+    first, second, _ = _arm_pair_tables(capsules.shape[1])
+    if not len(first):
+        return None
+    return _between_arms(_posed_types(scene.arm, capsules, boxes), first, second, scene.pairs.between_arms, boxes_only)
+
+
+def _flat_self_and_ground(scene: Scene, capsules, boxes) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Per arm, the smallest self and ground distances on a flat batch: [A, N] each."""
+    pairs, arm = scene.pairs, scene.arm
+    types = _posed_types(arm, capsules, boxes)
+    shape = (capsules.shape[1], capsules.shape[0])
+    self_dist = _within_arm(types, pairs.self_pairs) if len(pairs.self_pairs) else jnp.full(shape, jnp.inf)
+    # Ground: lowest capsule end minus the radius, lowest box corner.
+    g, ncap = pairs.ground, arm.num_capsules
+    (p, q, radius), lowest = types[0].arrays, []
+    if (g < ncap).any():
+        gc = g[g < ncap]
+        lowest.append(jnp.minimum(p[2][:, gc], q[2][:, gc]) - radius[0, gc])
+    if (g >= ncap).any():
+        centre, axes, half = types[-1].arrays
+        gx = g[g >= ncap] - ncap
+        lowest.append(centre[2][:, gx] - (half[:, :, gx] * jnp.abs(axes[:, 2][:, :, gx])).sum(axis=0))
+    ground = jnp.concatenate(lowest, axis=1).min(axis=1) if lowest else jnp.full(shape, jnp.inf)
+    return self_dist, ground
+
+
+def geom_contacts(scene: Scene, capsules, boxes, active, chunk: int | None = None) -> Contacts:
+    """Signed distances of posed collision geoms.
 
     Args:
       scene: the padded scene.
       capsules: [..., max_arms, ncap, 2, 3] world capsule segments (``ArmFrames.capsules``).
+      boxes: [..., max_arms, nbox, 4, 3] world box frames (``ArmFrames.boxes``).
       active: [..., max_arms] bool; inactive slots never collide and never affect others.
-      chunk: scenes checked at a time (a sequential ``lax.map`` over chunks). Default:
-        :data:`CPU_CHUNK` for multi-arm scenes on the CPU backend (2-3x faster at large
-        batches: the working set stays in cache), the whole batch at once otherwise.
+      chunk: scenes per chunk of the capsule-capsule check between arms (a sequential
+        ``lax.map`` over chunks). Default: :data:`CPU_CHUNK` for multi-arm scenes on the
+        CPU backend (2-3x faster at large batches: the working set stays in cache), the
+        whole batch at once otherwise.
 
     Under ``jax.vmap`` the mapped axes join the leading dims: the kernel always sees the
     whole batch of scenes at once (vectorized over scenes, chunked on CPU), however it is
     called.
     """
-    return _batched_kernel(scene, chunk)(capsules, active)
+    return _batched_kernel(scene, chunk)(capsules, boxes, active)
+
+
+def frame_contacts(scene: Scene, frames: ArmFrames, active, chunk: int | None = None) -> Contacts:
+    """:func:`geom_contacts` of arms already posed by :func:`forward_kinematics`."""
+    return geom_contacts(scene, frames.capsules, frames.boxes, active, chunk)
 
 
 @functools.cache
@@ -145,40 +382,65 @@ def _batched_kernel(scene: Scene, chunk: int | None):
     """:func:`_contacts` with a batching rule that folds vmapped axes into its batch."""
 
     @jax.custom_batching.custom_vmap
-    def kernel(capsules, active):
-        return _contacts(scene, capsules, active, chunk)
+    def kernel(capsules, boxes, active):
+        return _contacts(scene, capsules, boxes, active, chunk)
 
     @kernel.def_vmap
-    def fold_batch(axis_size, in_batched, capsules, active):
-        capsules_batched, active_batched = in_batched
-        if not capsules_batched:
-            capsules = jnp.broadcast_to(capsules, (axis_size, *capsules.shape))
-        if not active_batched:
-            active = jnp.broadcast_to(active, (axis_size, *active.shape))
-        contacts = kernel(capsules, active)
+    def fold_batch(axis_size, in_batched, *args):
+        args = [x if batched else jnp.broadcast_to(x, (axis_size, *x.shape)) for x, batched in zip(args, in_batched)]
+        contacts = kernel(*args)
         return contacts, jax.tree.map(lambda _: True, contacts)
 
     return kernel
 
 
-def _contacts(scene: Scene, capsules, active, chunk: int | None) -> Contacts:
+def _contacts(scene: Scene, capsules, boxes, active, chunk: int | None) -> Contacts:
     batch = capsules.shape[:-4]
-    num_arms, num_caps = capsules.shape[-4:-2]
-    capsules = capsules.reshape(-1, num_arms, num_caps, 2, 3)
+    num_arms = capsules.shape[-4]
+    capsules = capsules.reshape(-1, *capsules.shape[-4:])
+    boxes = boxes.reshape(-1, *boxes.shape[-4:])
     active = jnp.broadcast_to(active, (*batch, num_arms)).reshape(-1, num_arms)
     n = capsules.shape[0]
+    cpu = jax.default_backend() == "cpu"
     if chunk is None:
-        chunk = CPU_CHUNK if jax.default_backend() == "cpu" and num_arms > 1 else n
-    if n > chunk:
-        pad = -n % chunk  # padded scenes are inactive
-        capsules = jnp.pad(capsules, ((0, pad), (0, 0), (0, 0), (0, 0), (0, 0)))
-        active = jnp.pad(active, ((0, pad), (0, 0)))
-        chunks = (capsules.reshape(-1, chunk, *capsules.shape[1:]), active.reshape(-1, chunk, num_arms))
-        contacts = jax.lax.map(lambda xs: _flat_contacts(scene, *xs), chunks)
-        contacts = jax.tree.map(lambda x: x.reshape(-1, num_arms)[:n], contacts)
+        chunk = CPU_CHUNK if cpu and num_arms > 1 else n
+    box_chunk = CPU_BOX_CHUNK if cpu and num_arms >= BOX_CHUNK_MIN_ARMS else n
+    # The capsule-capsule block between arms has the largest working set: chunked on CPU
+    # (cache). The blocks with boxes are long elementwise chains that XLA splits into a
+    # few loops: per chunk they pay overhead, so they take larger chunks or none; the self
+    # pairs and the ground run over the whole batch.
+    parts = [_chunked(functools.partial(_flat_between, scene, False), chunk, capsules, boxes),
+             _chunked(functools.partial(_flat_between, scene, True), box_chunk, capsules, boxes)]
+    parts = [x for x in parts if x is not None]
+    first, second, incidence = _arm_pair_tables(num_arms)
+    inf = jnp.asarray(jnp.inf, capsules.dtype)
+    if parts:
+        act = active.T
+        pair_dist = jnp.where(act[first] & act[second], functools.reduce(jnp.minimum, parts), inf)  # [P, N]
+        between = jnp.where(incidence[..., None], pair_dist[None], inf).min(axis=1)  # [A, N]
     else:
-        contacts = _flat_contacts(scene, capsules, active)
-    return jax.tree.map(lambda x: x.reshape(*batch, num_arms), contacts)
+        between = jnp.full((num_arms, n), inf)
+    self_dist, ground = _flat_self_and_ground(scene, capsules, boxes)
+
+    def per_arm(x):  # [A, N] -> [*batch, A], inactive arms at +inf
+        return jnp.where(active, x.T, inf).reshape(*batch, num_arms)
+
+    return Contacts(between_arms=per_arm(between), within_arm=per_arm(self_dist), ground=per_arm(ground))
+
+
+def _chunked(kernel, chunk: int, *inputs):
+    """``kernel`` (flat batch in, [..., N] out) over sequential chunks of scenes (``lax.map``)."""
+    n = inputs[0].shape[0]
+    if n <= chunk:
+        return kernel(*inputs)
+    pad = -n % chunk  # padded scenes are inactive
+
+    def split(x):
+        x = jnp.pad(x, ((0, pad),) + ((0, 0),) * (x.ndim - 1))
+        return x.reshape(-1, chunk, *x.shape[1:])
+
+    out = jax.lax.map(lambda xs: kernel(*xs), tuple(split(x) for x in inputs))
+    return jax.tree.map(lambda x: jnp.moveaxis(x, 0, -2).reshape(*x.shape[1:-1], -1)[..., :n], out)
 
 
 def scene_contacts(scene: Scene, base_pos, base_quat, joints, active) -> Contacts:
@@ -188,8 +450,7 @@ def scene_contacts(scene: Scene, base_pos, base_quat, joints, active) -> Contact
       base_pos: [..., max_arms, 3]; base_quat: [..., max_arms, 4] (wxyz);
       joints: [..., max_arms, 6]; active: [..., max_arms] bool.
     """
-    frames = forward_kinematics(scene.arm, base_pos, base_quat, joints)
-    return capsule_contacts(scene, frames.capsules, active)
+    return frame_contacts(scene, forward_kinematics(scene.arm, base_pos, base_quat, joints), active)
 
 
 def num_substeps(joints_from, joints_to, resolution: float = SWEEP_RESOLUTION) -> int:
@@ -199,17 +460,17 @@ def num_substeps(joints_from, joints_to, resolution: float = SWEEP_RESOLUTION) -
 
 
 def swept_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, active, substeps: int,
-                   end_capsules=None) -> Contacts:
+                   end_frames: ArmFrames | None = None) -> Contacts:
     """Collision along the straight joint-space motion ``joints_from -> joints_to``.
 
     Checks the configurations at fractions k / substeps, k = 1..substeps (the start is
     assumed checked already), and returns per arm the smallest distance over them. Pick
     ``substeps`` with :func:`num_substeps`, or as ``ceil(max_step / resolution)`` for a
     known largest joint step; it is static under ``jit``. A caller that already posed the
-    arms at ``joints_to`` passes their ``ArmFrames.capsules`` as ``end_capsules`` so the
-    end configuration's kinematics is not computed twice.
+    arms at ``joints_to`` passes those ``ArmFrames`` as ``end_frames`` so the end
+    configuration's kinematics is not computed twice.
     """
-    inner = substeps if end_capsules is None else substeps - 1
+    inner = substeps if end_frames is None else substeps - 1
     fractions = jnp.arange(1, inner + 1, dtype=jnp.result_type(joints_from)) / substeps
 
     def at(fraction):
@@ -217,6 +478,6 @@ def swept_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, ac
         return scene_contacts(scene, base_pos, base_quat, joints, active)
 
     per_step = [jax.tree.map(lambda x: x.min(axis=0), jax.vmap(at)(fractions))] if inner else []
-    if end_capsules is not None:
-        per_step.append(capsule_contacts(scene, end_capsules, active))
+    if end_frames is not None:
+        per_step.append(frame_contacts(scene, end_frames, active))
     return jax.tree.map(lambda *x: functools.reduce(jnp.minimum, x), *per_step)

@@ -281,7 +281,7 @@ class ReachingEnv:
         joints = self.next_joints(state.joints, actions, task.active)
         frames = self._pose(task, joints)
         contacts = swept_contacts(self.scene, task.base_pos, task.base_quat, state.joints, joints, task.active, self.substeps,
-                                  end_capsules=frames.capsules)
+                                  end_frames=frames)
         collided = contacts.collided & task.active
 
         step = state.step + 1

@@ -25,6 +25,7 @@ class ArmFrames:
       ee_quat: [..., 4] orientation of ``ee_link`` (wxyz, scalar part >= 0).
       points: [..., 10, 3] the link points observed by the policy.
       capsules: [..., ncap, 2, 3] end points of every collision capsule's segment.
+      boxes: [..., nbox, 4, 3] every collision box: its centre, then its unit x, y, z axes.
     """
 
     body_pos: jnp.ndarray
@@ -33,6 +34,7 @@ class ArmFrames:
     ee_quat: jnp.ndarray
     points: jnp.ndarray
     capsules: jnp.ndarray
+    boxes: jnp.ndarray
 
 
 def _transform(body_pos, body_rot, body_index, local_points):
@@ -78,4 +80,14 @@ def forward_kinematics(arm: ArmModel, base_pos, base_quat, joints) -> ArmFrames:
         ee_quat=canonical_quat(ee_quat),
         points=_transform(body_pos, body_rot, arm.point_body, jnp.asarray(arm.point_pos, dtype)),
         capsules=_transform(body_pos, body_rot, arm.capsule_body, jnp.asarray(arm.capsule_ends, dtype)),
+        boxes=_pose_boxes(body_pos, body_rot, arm),
     )
+
+
+def _pose_boxes(body_pos, body_rot, arm: ArmModel):
+    """World centres and axes [..., nbox, 4, 3] of the arm's boxes."""
+    frame = jnp.asarray(arm.box_frame, body_pos.dtype)
+    rot = body_rot[..., arm.box_body, :, :]
+    centre = body_pos[..., arm.box_body, :] + jnp.einsum("...ij,...j->...i", rot, frame[:, 0])
+    axes = jnp.einsum("...ij,...kj->...ki", rot, frame[:, 1:])
+    return jnp.concatenate([centre[..., None, :], axes], axis=-2)

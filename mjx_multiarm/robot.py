@@ -43,6 +43,10 @@ class ArmModel:
     capsule_body: np.ndarray  # [ncap] body of each capsule
     capsule_ends: np.ndarray  # [ncap, 2, 3] segment end points in the body frame
     capsule_radius: np.ndarray  # [ncap]
+    box_names: tuple[str, ...]
+    box_body: np.ndarray  # [nbox] body of each box
+    box_frame: np.ndarray  # [nbox, 4, 3] centre, then the unit x, y, z axes, in the body frame
+    box_half: np.ndarray  # [nbox, 3] half sizes along the box's axes
     ee_body: int
     ee_pos: np.ndarray  # [3] ee_link site in its body frame
     ee_quat: np.ndarray  # [4]
@@ -52,6 +56,15 @@ class ArmModel:
     @property
     def num_capsules(self) -> int:
         return len(self.capsule_names)
+
+    @property
+    def num_boxes(self) -> int:
+        return len(self.box_names)
+
+    @property
+    def geom_names(self) -> tuple[str, ...]:
+        """Every collision geom: the capsules, then the boxes (the kernel's geom order)."""
+        return self.capsule_names + self.box_names
 
 
 def _custom_text(m: mujoco.MjModel, name: str) -> str:
@@ -63,11 +76,16 @@ def _custom_text(m: mujoco.MjModel, name: str) -> str:
     return bytes(m.text_data[start : start + m.text_size[i]]).rstrip(b"\0").decode()
 
 
-def _capsule_ends(m: mujoco.MjModel, g: int) -> np.ndarray:
-    """Segment end points of capsule ``g`` in its body frame."""
+def _geom_rotation(m: mujoco.MjModel, g: int) -> np.ndarray:
+    """Rotation [3, 3] of geom ``g`` in its body frame (columns: the geom's axes)."""
     rot = np.empty(9)
     mujoco.mju_quat2Mat(rot, m.geom_quat[g])
-    axis = rot.reshape(3, 3)[:, 2] * m.geom_size[g, 1]
+    return rot.reshape(3, 3)
+
+
+def _capsule_ends(m: mujoco.MjModel, g: int) -> np.ndarray:
+    """Segment end points of capsule ``g`` in its body frame."""
+    axis = _geom_rotation(m, g)[:, 2] * m.geom_size[g, 1]
     return np.stack([m.geom_pos[g] - axis, m.geom_pos[g] + axis])
 
 
@@ -81,9 +99,11 @@ def load_arm(xml_path: str | None = None) -> ArmModel:
     if m.njnt != NUM_JOINTS or any(m.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE for j in range(m.njnt)):
         raise ValueError(f"{xml_path or ARM_XML}: expected {NUM_JOINTS} hinge joints")
     body_joint = tuple(int(m.body_jntadr[b]) if m.body_jntnum[b] else -1 for b in bodies)
-    geoms = [g for g in range(m.ngeom) if m.geom_contype[g] or m.geom_conaffinity[g]]
-    if any(m.geom_type[g] != mujoco.mjtGeom.mjGEOM_CAPSULE for g in geoms):
-        raise ValueError(f"{xml_path or ARM_XML}: collision geoms must be capsules")
+    colliding = [g for g in range(m.ngeom) if m.geom_contype[g] or m.geom_conaffinity[g]]
+    geoms = [g for g in colliding if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE]
+    boxes = [g for g in colliding if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX]
+    if len(geoms) + len(boxes) != len(colliding):
+        raise ValueError(f"{xml_path or ARM_XML}: collision geoms must be capsules or boxes")
     sites = {m.site(s).name: s for s in range(m.nsite)}
     points = [sites[f"point_{i}"] for i in range(NUM_POINTS)]
     ee = sites["ee_link"]
@@ -102,6 +122,10 @@ def load_arm(xml_path: str | None = None) -> ArmModel:
         capsule_body=np.array([m.geom_bodyid[g] - 1 for g in geoms]),
         capsule_ends=np.stack([_capsule_ends(m, g) for g in geoms]),
         capsule_radius=m.geom_size[geoms, 0].copy(),
+        box_names=tuple(m.geom(g).name for g in boxes),
+        box_body=np.array([m.geom_bodyid[g] - 1 for g in boxes], dtype=int),
+        box_frame=np.array([np.vstack([m.geom_pos[g], _geom_rotation(m, g).T]) for g in boxes]).reshape(-1, 4, 3),
+        box_half=m.geom_size[boxes].reshape(-1, 3).copy(),
         ee_body=int(m.site_bodyid[ee] - 1),
         ee_pos=m.site_pos[ee].copy(),
         ee_quat=m.site_quat[ee].copy(),

@@ -5,7 +5,7 @@ A task with k arms activates k slots; the others are masked out of every computa
 MuJoCo model is composed with ``MjSpec``: each slot attaches a copy of the arm MJCF under
 the prefix ``arm{i}/``; its base is a mocap body placed at the arm's base pose.
 
-Which capsule pairs can collide is read off the compiled model with MuJoCo's own filtering
+Which geom pairs can collide is read off the compiled model with MuJoCo's own filtering
 rules (contype/conaffinity, weld bodies, parent-child filter, ``<exclude>``), so the JAX
 collision kernel and MuJoCo C (``mj_collision``) check exactly the same pairs.
 """
@@ -27,12 +27,13 @@ PARKING_SPACING = 10.0
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class CollisionPairs:
-    """The capsule pairs that count as collisions, in arm-local capsule indices.
+    """The geom pairs that count as collisions, in arm-local geom indices (``ArmModel.geom_names``:
+    capsules first, then boxes).
 
     Attributes:
-      between_arms: [ncap, ncap] bool; capsule a of one arm vs capsule b of another arm.
-      self_pairs: [nself, 2] capsule index pairs within one arm (non-adjacent links).
-      ground: [nground] capsules checked against the ground plane (the base excepted).
+      between_arms: [ngeom, ngeom] bool; geom a of one arm vs geom b of another arm.
+      self_pairs: [nself, 2] geom index pairs within one arm (non-adjacent links).
+      ground: [nground] geoms checked against the ground plane (the base excepted).
     """
 
     between_arms: np.ndarray
@@ -51,7 +52,7 @@ class Scene:
     arm: ArmModel
     mj_model: mujoco.MjModel
     pairs: CollisionPairs
-    capsule_geoms: np.ndarray  # [max_arms, ncap] geom ids of each slot's capsules
+    geoms: np.ndarray  # [max_arms, ngeom] MuJoCo geom ids of each slot's collision geoms
     ground_geom: int
     mocap_ids: np.ndarray  # [max_arms] mocap index of each slot's base
     qpos_adr: np.ndarray  # [max_arms, 6] qpos address of each slot's joints
@@ -94,19 +95,19 @@ def _may_collide(m: mujoco.MjModel, excluded: set[int], g1: int, g2: int) -> boo
     return (min(b1, b2) << 16) + max(b1, b2) not in excluded
 
 
-def _collision_pairs(m: mujoco.MjModel, capsule_geoms: np.ndarray, ground: int) -> CollisionPairs:
+def _collision_pairs(m: mujoco.MjModel, geoms: np.ndarray, ground: int) -> CollisionPairs:
     """Read the pair sets off slot 0 (and slot 1 for pairs between arms)."""
     may_collide = functools.partial(_may_collide, m, set(m.exclude_signature.tolist()))
-    ncap = capsule_geoms.shape[1]
-    slot0 = capsule_geoms[0]
-    between = np.zeros((ncap, ncap), bool)
-    if len(capsule_geoms) > 1:
-        between = np.array([[may_collide(a, b) for b in capsule_geoms[1]] for a in slot0])
-    self_pairs = [(a, b) for a in range(ncap) for b in range(a + 1, ncap) if may_collide(slot0[a], slot0[b])]
+    ngeom = geoms.shape[1]
+    slot0 = geoms[0]
+    between = np.zeros((ngeom, ngeom), bool)
+    if len(geoms) > 1:
+        between = np.array([[may_collide(a, b) for b in geoms[1]] for a in slot0])
+    self_pairs = [(a, b) for a in range(ngeom) for b in range(a + 1, ngeom) if may_collide(slot0[a], slot0[b])]
     return CollisionPairs(
         between_arms=between,
         self_pairs=np.array(self_pairs, dtype=np.int32).reshape(-1, 2),
-        ground=np.array([c for c in range(ncap) if may_collide(ground, slot0[c])], dtype=np.int32),
+        ground=np.array([c for c in range(ngeom) if may_collide(ground, slot0[c])], dtype=np.int32),
     )
 
 
@@ -115,14 +116,14 @@ def build_scene(max_arms: int = 10, arm_xml: str | None = None) -> Scene:
     """Build (once per argument set) the padded scene with ``max_arms`` slots."""
     arm = load_arm(arm_xml)
     m = build_spec(max_arms, arm_xml).compile()
-    capsule_geoms = np.array([[m.geom(f"arm{i}/{name}").id for name in arm.capsule_names] for i in range(max_arms)])
+    geoms = np.array([[m.geom(f"arm{i}/{name}").id for name in arm.geom_names] for i in range(max_arms)])
     ground = m.geom("ground").id
     return Scene(
         max_arms=max_arms,
         arm=arm,
         mj_model=m,
-        pairs=_collision_pairs(m, capsule_geoms, ground),
-        capsule_geoms=capsule_geoms,
+        pairs=_collision_pairs(m, geoms, ground),
+        geoms=geoms,
         ground_geom=ground,
         mocap_ids=np.array([m.body_mocapid[m.body(f"arm{i}/base_link").id] for i in range(max_arms)]),
         qpos_adr=np.array(

@@ -141,13 +141,17 @@ def test_fk_matches_mujoco_kinematics_in_padded_scene():
         np.testing.assert_allclose(frames.ee_pos[i], data.site_xpos[ee], atol=1e-5)
         ee_rot = np.asarray(quat_to_mat(frames.ee_quat[i]))
         np.testing.assert_allclose(ee_rot, data.site_xmat[ee].reshape(3, 3), atol=1e-5)
-        for c, geom in enumerate(scene.capsule_geoms[i]):
+        ncap = scene.arm.num_capsules
+        for c, geom in enumerate(scene.geoms[i, :ncap]):
             center = frames.capsules[i, c].mean(axis=0)
             axis = frames.capsules[i, c, 1] - frames.capsules[i, c, 0]
             np.testing.assert_allclose(center, data.geom_xpos[geom], atol=1e-5)
             np.testing.assert_allclose(
                 axis, 2 * m.geom_size[geom, 1] * data.geom_xmat[geom].reshape(3, 3)[:, 2], atol=1e-5
             )
+        for b, geom in enumerate(scene.geoms[i, ncap:]):
+            np.testing.assert_allclose(frames.boxes[i, b, 0], data.geom_xpos[geom], atol=1e-5)
+            np.testing.assert_allclose(frames.boxes[i, b, 1:].T, data.geom_xmat[geom].reshape(3, 3), atol=1e-5)
 
 
 @pytest.mark.parametrize("shape", [(6,), (2, 3, 6)])
@@ -157,4 +161,5 @@ def test_fk_broadcasts_any_batch_shape(shape):
     frames = forward_kinematics(arm, jnp.zeros(3), jnp.array([1.0, 0, 0, 0]), q)
     assert frames.ee_pos.shape == (*shape[:-1], 3)
     assert frames.capsules.shape == (*shape[:-1], arm.num_capsules, 2, 3)
+    assert frames.boxes.shape == (*shape[:-1], arm.num_boxes, 4, 3)
     assert frames.points.shape == (*shape[:-1], 10, 3)
