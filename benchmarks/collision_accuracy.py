@@ -12,8 +12,8 @@ the exact triangle-mesh reference (:mod:`mjx_multiarm.mesh_reference`, meshes of
 
 Self pairs are the non-adjacent link pairs the model checks; mesh contacts in the pairs it
 excludes (``excluded``) are reported with how many of those scenes the model flags anyway
-(by another kind). Also reported: the mesh-minus-model distance at near contact (meshes
-< 50 mm apart; positive = the model is larger than the meshes), and the mesh link pairs
+(by another kind). Also reported: the mesh-minus-model distance at near contact (meshes apart
+by less than 50 mm; positive = the model is larger than the meshes), and the mesh link pairs
 nearest in false-flagged scenes.
 
     python benchmarks/collision_accuracy.py --two-arm 20000 --one-arm 5000 --json
@@ -39,7 +39,7 @@ from mjx_multiarm.transforms import yaw_quat
 
 MESHES = pathlib.Path(__file__).resolve().parents[2] / "shared" / "reference" / "ur5" / "collision"
 BINS_MM = (0.0, 5.0, 20.0, 50.0, np.inf)
-NEAR = 0.05  # near contact: meshes closer than this (m)
+NEAR = 0.05  # near contact: meshes apart by less than this (m)
 
 
 def random_scenes(rng: np.random.Generator, count: int, num_arms: int):
@@ -111,7 +111,7 @@ def summarize(model: dict, mesh: dict, nearest: dict) -> dict:
         flagged = checked & (m < 0.0)
         false = flagged & ~touching
         counts = np.histogram(r[false] * 1e3, bins=BINS_MM)[0]
-        near = checked & (r < NEAR)
+        near = checked & (r > 0.0) & (r < NEAR)
         gap = (r - m)[near] * 1e3  # how much larger the model is than the meshes
         pairs = collections.Counter(
             f"{a}-{b}" for a, b in ((nearest[kind][k][1], nearest[kind][k][3]) for k in np.flatnonzero(false & (r >= 5e-3)))

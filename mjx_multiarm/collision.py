@@ -37,11 +37,14 @@ SWEEP_RESOLUTION = 0.05
 #: Scenes per chunk of the capsule-capsule check between arms on CPU (measured best of
 #: 16-256 for 4 and 10 arms).
 CPU_CHUNK = 64
-#: Scenes per chunk of the checks with boxes between arms on CPU, for scenes of at least
-#: :data:`BOX_CHUNK_MIN_ARMS` arms (measured: 10 arms 261k -> 314k arm-evaluations/s at
-#: chunks of 128-512; 4 arms are fastest unchunked, 694k vs 551-566k).
-CPU_BOX_CHUNK = 256
+#: Scenes per chunk of the checks with boxes between arms on CPU, for scenes of fewer /
+#: at least :data:`BOX_CHUNK_MIN_ARMS` arms (measured at batch 1024: 10 arms 261k -> 314k
+#: arm-evaluations/s at chunks of 128-512; 4 arms are fastest at 1024, 694k vs 551-566k).
+#: The self pairs and the ground take chunks of :data:`CPU_SELF_CHUNK`: every chunk size
+#: bounds memory at large batches (a 2-million-scene swept check).
+CPU_BOX_CHUNK = (1024, 256)
 BOX_CHUNK_MIN_ARMS = 5
+CPU_SELF_CHUNK = 1024
 
 
 @struct.dataclass
@@ -404,11 +407,11 @@ def _contacts(scene: Scene, capsules, boxes, active, chunk: int | None) -> Conta
     cpu = jax.default_backend() == "cpu"
     if chunk is None:
         chunk = CPU_CHUNK if cpu and num_arms > 1 else n
-    box_chunk = CPU_BOX_CHUNK if cpu and num_arms >= BOX_CHUNK_MIN_ARMS else n
+    box_chunk = CPU_BOX_CHUNK[num_arms >= BOX_CHUNK_MIN_ARMS] if cpu else n
     # The capsule-capsule block between arms has the largest working set: chunked on CPU
     # (cache). The blocks with boxes are long elementwise chains that XLA splits into a
-    # few loops: per chunk they pay overhead, so they take larger chunks or none; the self
-    # pairs and the ground run over the whole batch.
+    # few loops: per chunk they pay overhead, so they take larger chunks, as do the self
+    # pairs and the ground.
     parts = [_chunked(functools.partial(_flat_between, scene, False), chunk, capsules, boxes),
              _chunked(functools.partial(_flat_between, scene, True), box_chunk, capsules, boxes)]
     parts = [x for x in parts if x is not None]
@@ -420,7 +423,8 @@ def _contacts(scene: Scene, capsules, boxes, active, chunk: int | None) -> Conta
         between = jnp.where(incidence[..., None], pair_dist[None], inf).min(axis=1)  # [A, N]
     else:
         between = jnp.full((num_arms, n), inf)
-    self_dist, ground = _flat_self_and_ground(scene, capsules, boxes)
+    self_dist, ground = _chunked(functools.partial(_flat_self_and_ground, scene), CPU_SELF_CHUNK if cpu else n,
+                                 capsules, boxes)
 
     def per_arm(x):  # [A, N] -> [*batch, A], inactive arms at +inf
         return jnp.where(active, x.T, inf).reshape(*batch, num_arms)

@@ -133,7 +133,7 @@ def render_episode(env: ReachingEnv, task: Tasks, trajectory: Trajectory, height
     base_pos, base_quat = np.asarray(task.base_pos), np.asarray(task.base_quat)
     camera = _camera(base_pos[active])
     options = mujoco.MjvOption()
-    options.geomgroup[3] = 1  # the arms' capsules (collision class) are what we draw
+    options.geomgroup[3] = 1  # the arms' collision geoms (capsules and the gripper box) are what we draw
     slots = _geom_slots(scene.mj_model)
     frames = []
     for t in range(len(trajectory.joints)):

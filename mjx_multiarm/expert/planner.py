@@ -1,7 +1,7 @@
 """Centralized BiRRT (OMPL's RRT-Connect) in the composite joint space of a task's arms.
 
 The planner searches the 6k-D space of a k-arm task from the start to the goal
-configuration. Validity comes from the project's own collision model (the capsules the
+configuration. Validity comes from the project's own collision model (the geoms the
 environment checks), through jitted JAX kernels called with numpy arrays: one call per
 state, one vectorized call per edge (a ``MotionValidator`` that checks the straight motion
 at 0.05 rad resolution in every joint). The search stops at an iteration cap or a time cap;
