@@ -6,7 +6,9 @@ exact while the geoms are apart (what MuJoCo C's ``mj_geomDistance`` computes):
 - capsule-capsule: segment-segment distance minus the two radii;
 - capsule-box: segment-box distance (the convex, piecewise quadratic squared distance
   along the segment, minimized exactly from its breakpoints) minus the radius;
-- box-box: the smallest segment-box distance over the 24 edges of the two boxes;
+- box-box: apart (separating-axis test), the smallest of one box's 12 edges against the
+  other box and the other box's 8 corners against the first; overlapping, the test's
+  penetration;
 - ground: the lowest capsule end minus the radius, the lowest box corner.
 
 Distances are signed: negative means penetration (for a segment that enters a box, the
@@ -91,6 +93,11 @@ def segment_distance(p1, q1, p2, q2):
     return jnp.sqrt(_dot(gap, gap))
 
 
+def _excess(x, h):
+    """How far the coordinate x lies outside [-h, h] (signed, 0 inside)."""
+    return x - jnp.clip(x, -h, h)
+
+
 def _segment_aabb_distance(a, b, h):
     """Signed distance from the segment a + t b, t in [0, 1], to the box |x_k| <= h_k.
 
@@ -107,8 +114,7 @@ def _segment_aabb_distance(a, b, h):
     def slope(t):  # F'(t) / 2
         total = 0.0
         for k in range(3):
-            x = a[k] + t * b[k]
-            total = total + b[k] * (x - jnp.clip(x, -h[k], h[k]))
+            total = total + b[k] * _excess(a[k] + t * b[k], h[k])
         return total
 
     zero = jnp.zeros_like(a[0] + b[0] + h[0])
@@ -134,8 +140,7 @@ def _segment_aabb_distance(a, b, h):
     linear = lo_t - lo_g * (hi_t - lo_t) / jnp.where(plateau, 1.0, hi_g - lo_g)
     best = jnp.where(plateau, hi_t, linear)
     best = jnp.where(jnp.isinf(lo_t), 0.0, jnp.where(jnp.isinf(hi_t), 1.0, best))
-    outside = [a[k] + best * b[k] for k in range(3)]
-    outside = [x - jnp.clip(x, -h[k], h[k]) for k, x in enumerate(outside)]
+    outside = [_excess(a[k] + best * b[k], h[k]) for k in range(3)]
     distance = jnp.sqrt(sum(o * o for o in outside))
     middle = 0.5 * (enter + leave)
     depth = functools.reduce(jnp.maximum, [jnp.abs(a[k] + middle * b[k]) - h[k] for k in range(3)])
@@ -201,7 +206,7 @@ def box_box_distance(centre_a, axes_a, half_a, centre_b, axes_b, half_b):
     # B's corners against A, in A's frame: t + sum_j s_j h_j b_j, b_j = column j of R.
     for signs in itertools.product((-1.0, 1.0), repeat=3):
         corner = [t[i] + sum(signs[j] * hb[j] * r[i][j] for j in range(3)) for i in range(3)]
-        excess = [c - jnp.clip(c, -ha[i], ha[i]) for i, c in enumerate(corner)]
+        excess = [_excess(c, ha[i]) for i, c in enumerate(corner)]
         nearest = jnp.minimum(nearest, jnp.sqrt(sum(e * e for e in excess)))
     return jnp.where(overlap_gap < 0.0, overlap_gap, nearest)
 
@@ -263,6 +268,16 @@ def _pair_distance(a: _Geoms, b: _Geoms):
     return segment_box_distance(*capsule.arrays[:2], *box.arrays) - capsule.arrays[2]
 
 
+def _type_blocks(types, checked):
+    """The non-empty type blocks of a geom-pair mask [ngeom, ngeom] (capsules, then boxes):
+    yields (ta, a, tb, b, mask) with ``mask`` the [Ga, Gb] part of types a and b."""
+    offsets = np.cumsum([0] + [t.count for t in types])
+    for (ta, a), (tb, b) in itertools.product(enumerate(types), repeat=2):
+        mask = checked[offsets[ta]:offsets[ta + 1], offsets[tb]:offsets[tb + 1]]
+        if mask.any():
+            yield ta, a, tb, b, mask
+
+
 def _between_arms(types, first, second, checked, boxes: bool) -> jnp.ndarray | None:
     """Per arm pair (first[i], second[i]), the smallest signed distance over the geom pairs
     marked in ``checked`` [ngeom, ngeom] (capsules, then boxes): [P, N], or None if none.
@@ -270,11 +285,9 @@ def _between_arms(types, first, second, checked, boxes: bool) -> jnp.ndarray | N
     ``boxes`` selects the blocks with a box, else the capsule-capsule block. Each block is
     a dense broadcast of one arm's geoms against the other's, masked by ``checked``.
     """
-    offsets = np.cumsum([0] + [t.count for t in types])
     result = None
-    for (ta, a), (tb, b) in itertools.product(enumerate(types), repeat=2):
-        mask = checked[offsets[ta]:offsets[ta + 1], offsets[tb]:offsets[tb + 1]]
-        if not mask.any() or (a.is_box or b.is_box) != boxes or ta > tb:
+    for ta, a, tb, b, mask in _type_blocks(types, checked):
+        if (a.is_box or b.is_box) != boxes or ta > tb:
             continue
         d = _pair_distance(a.take(0, first).expand(2), b.take(0, second).expand(1))  # [P, Ga, Gb, N]
         d = jnp.where(mask[..., None], d, jnp.inf).min(axis=(1, 2))
@@ -291,14 +304,11 @@ def _within_arm(types, pairs) -> jnp.ndarray:
     Capsule pairs are gathered; blocks with boxes (an arm has few) are dense broadcasts of
     the two types masked by the pair list, as between arms.
     """
-    offsets = np.cumsum([0] + [t.count for t in types])
-    checked = np.zeros((offsets[-1], offsets[-1]), bool)
+    ngeom = sum(t.count for t in types)
+    checked = np.zeros((ngeom, ngeom), bool)
     checked[pairs[:, 0], pairs[:, 1]] = True
     result = None
-    for (ta, a), (tb, b) in itertools.product(enumerate(types), repeat=2):
-        mask = checked[offsets[ta]:offsets[ta + 1], offsets[tb]:offsets[tb + 1]]
-        if not mask.any():
-            continue
+    for _, a, _, b, mask in _type_blocks(types, checked):
         if a.is_box or b.is_box:
             d = _pair_distance(a.expand(2), b.expand(1))  # [A, Ga, Gb, N]
             d = jnp.where(mask[..., None], d, jnp.inf).min(axis=(1, 2))
