@@ -16,6 +16,12 @@ excludes (``excluded``) are reported with how many of those scenes the model fla
 by less than 50 mm; positive = the model is larger than the meshes), and the mesh link pairs
 nearest in false-flagged scenes.
 
+The original's collision model, the convex hull of each link mesh (PyBullet), is measured
+the same way on the same scenes (``original_hulls``), and the project's model against it
+(``against_hulls``): per kind, the scenes the project's model flags where the hulls are
+apart (it rejects what the original accepts), also where they are >= 5 mm apart, and the
+scenes the hulls flag where the project's model is free (``--no-hulls`` skips all this).
+
     python benchmarks/collision_accuracy.py --two-arm 20000 --one-arm 5000 --json
 """
 
@@ -131,17 +137,47 @@ def summarize(model: dict, mesh: dict, nearest: dict) -> dict:
     return summary
 
 
+def against_hulls(model: dict, hulls: dict) -> dict:
+    """Per kind: scenes the model flags where the convex hulls are apart (also >= 5 mm apart),
+    and scenes the hulls flag where the model is free."""
+    out = {}
+    for kind in model:
+        m, h = model[kind], hulls[kind]
+        checked = np.isfinite(h)
+        out[kind] = {"scenes": int(checked.sum()),
+                     "model_flags_hulls_apart": int((checked & (m < 0) & (h > 0)).sum()),
+                     "model_flags_hulls_apart_5mm": int((checked & (m < 0) & (h >= 5e-3)).sum()),
+                     "hull_flags_model_free": int((checked & (h <= 0) & (m >= 0)).sum())}
+    return out
+
+
+def _print_summary(summary: dict) -> None:
+    for kind, s in summary.items():
+        if "model_flags" not in s:
+            print(f"  {kind:12s} mesh contacts {s['mesh_contacts']:6d}, flagged by other kinds "
+                  f"{s['flagged_by_other_kinds']}")
+            continue
+        print(f"  {kind:12s} mesh contacts {s['mesh_contacts']:6d}  model flags {s['model_flags']:6d}  "
+              f"missed {s['missed']}  false flags by mesh mm {s['false_flags_by_mesh_mm']}  "
+              f">=5 mm: {s['false_flag_rate_5mm']:.2%}  near contact, mesh minus model: median "
+              f"{s['near_excess_mm_median']:.1f} mm, p90 {s['near_excess_mm_p90']:.1f} mm  "
+              f"worst pairs {s['worst_link_pairs_5mm']}")
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--two-arm", type=int, default=20_000, help="random 2-arm scenes")
     parser.add_argument("--one-arm", type=int, default=5_000, help="random 1-arm scenes")
     parser.add_argument("--meshes", type=pathlib.Path, default=MESHES, help="directory of the UR5 collision STLs")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-hulls", action="store_true", help="skip the original's model (convex hulls)")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON line")
     args = parser.parse_args(argv)
     if not args.meshes.is_dir():
         parser.error(f"--meshes: no directory {args.meshes}")
-    reference = MeshReference(args.meshes, self_pairs=checked_self_links(build_scene(1)))
+    self_pairs = checked_self_links(build_scene(1))
+    reference = MeshReference(args.meshes, self_pairs=self_pairs)
+    hulls = None if args.no_hulls else MeshReference(args.meshes, self_pairs=self_pairs, hulls=True)
     rng = np.random.default_rng(args.seed)
     result = {"cpu": cpu_name(), "seed": args.seed}
     for label, arms, count in (("one_arm", 1, args.one_arm), ("two_arm", 2, args.two_arm)):
@@ -153,16 +189,15 @@ def main(argv=None):
         mesh, nearest = mesh_distances(reference, pos, quat, joints)
         result[label] = summarize(model, mesh, nearest)
         print(f"{label}: {count} scenes in {time.perf_counter() - start:.0f} s")
-        for kind, s in result[label].items():
-            if "model_flags" not in s:
-                print(f"  {kind:12s} mesh contacts {s['mesh_contacts']:6d}, flagged by other kinds "
-                      f"{s['flagged_by_other_kinds']}")
-                continue
-            print(f"  {kind:12s} mesh contacts {s['mesh_contacts']:6d}  model flags {s['model_flags']:6d}  "
-                  f"missed {s['missed']}  false flags by mesh mm {s['false_flags_by_mesh_mm']}  "
-                  f">=5 mm: {s['false_flag_rate_5mm']:.2%}  near contact, mesh minus model: median "
-                  f"{s['near_excess_mm_median']:.1f} mm, p90 {s['near_excess_mm_p90']:.1f} mm  "
-                  f"worst pairs {s['worst_link_pairs_5mm']}")
+        _print_summary(result[label])
+        if hulls is not None:
+            hull, hull_nearest = mesh_distances(hulls, pos, quat, joints)
+            hull_model = {kind: hull[kind] for kind in model}
+            result[label + "_original_hulls"] = summarize(hull_model, mesh, hull_nearest)
+            result[label + "_against_hulls"] = against_hulls(model, hull)
+            print(f"{label}, the original's model (per-link convex hulls) on the same scenes:")
+            _print_summary(result[label + "_original_hulls"])
+            print(f"{label}, this model against the convex hulls: {result[label + '_against_hulls']}")
     if args.json:
         print(json.dumps(result))
 

@@ -6,6 +6,10 @@ This module measures both: it poses the meshes (the 7 link STLs and the gripper 
 box of ``ee_link``) with MuJoCo C's kinematics of the arm MJCF and computes exact
 triangle-mesh distances with coal (the meshes themselves, not their convex hulls).
 
+With ``hulls=True`` the links are their convex hulls instead: the original's PyBullet
+collision model (convex hulls of the same meshes), for comparing the project's model with
+the one the original's tasks were generated with.
+
 The meshes are not part of the project; point :class:`MeshReference` at a directory that
 holds them (``../shared/reference/ur5/collision`` beside a development checkout). Needs the
 ``coal`` package (``pip install ".[reference]"``).
@@ -61,6 +65,24 @@ class SceneDistances:
         return float(np.min(getattr(self, kind), initial=np.inf))
 
 
+def _mesh_model(coal, vertices, triangles):
+    """A coal BVH of a triangle mesh (its surface: exact mesh-mesh distances)."""
+    model = coal.BVHModelOBBRSS()
+    model.beginModel(len(triangles), len(vertices))
+    model.addVertices(vertices)
+    model.addTriangles(triangles.astype(np.int64))
+    model.endModel()
+    return model
+
+
+def _convex_hull(coal, vertices):
+    """The convex hull of points as a coal convex shape (solid: GJK/EPA distances)."""
+    points = coal.StdVec_Vec3s()
+    for v in vertices:
+        points.append(v)
+    return coal.ConvexBase.convexHull(points, True, "Qt")
+
+
 class MeshReference:
     """The UR5 collision meshes posed by MuJoCo C kinematics, with exact distance queries.
 
@@ -70,14 +92,16 @@ class MeshReference:
         reports the (smaller than true) bounding-sphere gap, which is then >= cutoff.
       self_pairs: the link pairs of ``within_arm`` (default: all non-adjacent pairs); the
         other pairs of :data:`SELF_PAIRS` form the ``excluded`` kind.
+      hulls: use each link's convex hull (the original's model) instead of its mesh.
     """
 
-    def __init__(self, mesh_dir, cutoff: float = 0.1, self_pairs=SELF_PAIRS):
+    def __init__(self, mesh_dir, cutoff: float = 0.1, self_pairs=SELF_PAIRS, hulls: bool = False):
         import coal  # the reference needs coal; nothing else in the project does
 
         self._coal = coal
         self.mesh_dir = mesh_dir = pathlib.Path(mesh_dir)
         self.cutoff = cutoff
+        self.hulls = hulls
         self.self_pairs = {tuple(sorted(p)) for p in self_pairs}
         if not self.self_pairs <= set(SELF_PAIRS):
             raise ValueError(f"self_pairs: not non-adjacent link pairs: {sorted(self.self_pairs - set(SELF_PAIRS))}")
@@ -86,11 +110,7 @@ class MeshReference:
         self.vertices, self.models, self.sphere_centre, self.sphere_radius = [], [], [], []
         for tri in triangles:
             vertices, index = np.unique(tri.reshape(-1, 3), axis=0, return_inverse=True)
-            model = coal.BVHModelOBBRSS()
-            model.beginModel(len(tri), len(vertices))
-            model.addVertices(vertices)
-            model.addTriangles(index.reshape(-1, 3).astype(np.int64))
-            model.endModel()
+            model = _convex_hull(coal, vertices) if hulls else _mesh_model(coal, vertices, index.reshape(-1, 3))
             centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
             self.vertices.append(vertices)
             self.models.append(model)
@@ -110,7 +130,10 @@ class MeshReference:
         return d.xmat[1:].reshape(-1, 3, 3).copy(), d.xpos[1:].copy()
 
     def pair_distance(self, pose_a, link_a: int, pose_b, link_b: int) -> float:
-        """Mesh distance of links (indices into :data:`LINKS`) at poses (rotation, position)."""
+        """Mesh distance of links (indices into :data:`LINKS`) at poses (rotation, position).
+
+        0 where the meshes touch or cross; with ``hulls``, signed (negative: penetration).
+        """
         (rot_a, pos_a), (rot_b, pos_b) = pose_a, pose_b
         gap = np.linalg.norm(rot_a @ self.sphere_centre[link_a] + pos_a - rot_b @ self.sphere_centre[link_b] - pos_b)
         gap -= self.sphere_radius[link_a] + self.sphere_radius[link_b]
@@ -118,9 +141,9 @@ class MeshReference:
             return gap
         coal = self._coal
         self._result.clear()
-        return max(0.0, coal.distance(self.models[link_a], coal.Transform3s(rot_a, pos_a),
-                                      self.models[link_b], coal.Transform3s(rot_b, pos_b),
-                                      self._request, self._result))
+        distance = coal.distance(self.models[link_a], coal.Transform3s(rot_a, pos_a),
+                                 self.models[link_b], coal.Transform3s(rot_b, pos_b), self._request, self._result)
+        return distance if self.hulls else max(0.0, distance)
 
     def scene(self, base_pos, base_quat, joints) -> SceneDistances:
         """Distances of one scene: base_pos [n, 3], base_quat [n, 4] (wxyz), joints [n, 6]."""

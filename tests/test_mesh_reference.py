@@ -105,3 +105,19 @@ def test_reference_rejects_adjacent_self_pairs(reference):
     with pytest.raises(ValueError, match="self_pairs"):
         MeshReference(reference.mesh_dir, self_pairs=[(0, 1)])
     assert set(SELF_PAIRS) >= reference.self_pairs
+
+
+def test_convex_hulls_enclose_the_meshes(reference):
+    """The original's model (per-link convex hulls) is never farther apart than the meshes,
+    is exactly as far where the closest points are on the hull, and reports penetration
+    (negative) where the meshes cross."""
+    hulls = MeshReference(reference.mesh_dir, self_pairs=reference.self_pairs, hulls=True)
+    pos, quat, joints = random_scenes(np.random.default_rng(5), 100, 2)
+    mesh, _ = mesh_distances(reference, pos, quat, joints)
+    hull, _ = mesh_distances(hulls, pos, quat, joints)
+    for kind in ("between_arms", "within_arm", "ground"):
+        near = mesh[kind] < reference.cutoff
+        assert (hull[kind][near] <= mesh[kind][near] + 1e-6).all(), kind
+    assert (hull["ground"] == mesh["ground"]).all()  # the lowest point is a mesh vertex either way
+    touching = mesh["between_arms"] <= 0.0
+    assert touching.any() and (hull["between_arms"][touching] < 0.0).all()
