@@ -31,16 +31,16 @@ BATCH = 128
 LENGTH_QUANTUM = 64
 
 
-def replay_experts(tasks, store: ExpertStore, max_steps: int = 500) -> dict:
-    """Replay every solved expert of ``store`` on its task of ``tasks``."""
+def replay_experts(tasks, store: ExpertStore, max_steps: int = 500, batch_size: int = BATCH) -> dict:
+    """Replay every solved expert of ``store`` on its task of ``tasks``, ``batch_size`` at a time."""
     row_of = {int(t): i for i, t in enumerate(tasks.task_id)}
     ids = [int(t) for t in store.task_ids[store.solved] if int(t) in row_of]
     env = ReachingEnv(tasks.max_arms, EnvConfig(max_steps=max_steps))
     replay = jax.jit(jax.vmap(lambda s, a, n: replay_actions(env, s, a, n)))
     reset = jax.jit(jax.vmap(lambda task: env.reset(None, task)))
     success, collided, teams = [], [], []
-    for start in range(0, len(ids), BATCH):
-        batch = ids[start : start + BATCH]
+    for start in range(0, len(ids), batch_size):
+        batch = ids[start : start + batch_size]
         length = max(len(store.deltas(t)) for t in batch)
         deltas, lengths = store.padded(batch, -(-length // LENGTH_QUANTUM) * LENGTH_QUANTUM, tasks.max_arms)
         bank = TaskBank.from_tasks(take(tasks, np.array([row_of[t] for t in batch])), tasks.max_arms)
@@ -63,9 +63,10 @@ def main(argv=None):
     parser.add_argument("--tasks", required=True, help="task dataset (.npz)")
     parser.add_argument("--experts", required=True, help="expert file of those tasks")
     parser.add_argument("--max-steps", type=int, default=500, help="episode length (default 500)")
+    parser.add_argument("--batch", type=int, default=BATCH, help=f"tasks replayed at once (default {BATCH})")
     parser.add_argument("--json", action="store_true", help="end with one JSON line")
     args = parser.parse_args(argv)
-    result = replay_experts(load_tasks(args.tasks)[0], ExpertStore(args.experts), args.max_steps)
+    result = replay_experts(load_tasks(args.tasks)[0], ExpertStore(args.experts), args.max_steps, args.batch)
     print(f"replayed {result['replayed']} experts: {result['replay_success_rate']:.2%} succeed, {result['collisions']} collide")
     for k, row in result["by_team_size"].items():
         print(f"  {k:2d} arms: {row['replayed']} replayed, {row['success_rate']:.2%} succeed")

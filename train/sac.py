@@ -5,6 +5,7 @@
     python -m train.sac --arms 1-4 --minutes 60 --run-dir runs/four
     python -m train.sac --resume runs/four                # continue a killed run exactly
     python -m train.sac --tasks train.npz --experts train.experts --run-dir runs/big
+    python -m train.sac --tasks train.npz --experts train.experts --train-tasks 10000   # its first 10,000
 
 Without ``--tasks`` the run generates its training and evaluation tasks and plans their
 experts itself (a small set; seconds to a minute), so it needs no precompute step. The
@@ -53,7 +54,7 @@ from mjx_multiarm.policy import policy_env_settings
 from mjx_multiarm.tasks.__main__ import parse_arms
 from mjx_multiarm.tasks.dataset import atomic_write, load_tasks, save_tasks
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
-from mjx_multiarm.tasks.types import concatenate
+from mjx_multiarm.tasks.types import concatenate, take
 from mjx_multiarm.wrappers import TaskBank
 from train.agent import SACConfig
 from train.checkpoint import Checkpoints
@@ -186,6 +187,7 @@ def _settings(args) -> dict:
     return {
         "preset": args.preset, **preset, "seed": args.seed, "expert": not args.no_expert, "bc": args.bc, "reward": args.reward,
         "observe": args.observe, "sac": args.sac, "curriculum": not args.no_curriculum, "tasks": str(args.tasks) if args.tasks else None,
+        "task_limit": args.train_tasks if args.tasks else None,
         "experts": str(args.experts) if args.experts else None, "eval_tasks_file": str(args.eval_tasks) if args.eval_tasks else None,
         "with_buffer": not args.no_buffer_checkpoint, "checkpoint_minutes": args.checkpoint_minutes,
     }
@@ -205,6 +207,8 @@ def _prepare(run_dir: pathlib.Path, settings: dict, env_config: EnvConfig, worke
     if settings["tasks"]:
         tasks = load_tasks(settings["tasks"])[0]
         tasks_path = pathlib.Path(settings["tasks"])
+        if settings.get("task_limit"):  # --train-tasks N with --tasks: the file's first N tasks
+            tasks = take(tasks, slice(0, settings["task_limit"]))
     else:
         tasks_path = run_dir / "tasks.npz"
         log(f"generating {settings['train_tasks']} training tasks ({','.join(map(str, arms))} arms)...")

@@ -27,17 +27,18 @@ from mjx_multiarm.progress import Progress
 
 
 def report(store: ExpertStore) -> dict:
-    """The store's summary plus solved rate and planning time per team size."""
+    """The store's summary plus, per team size, solved rate, planning time and path length
+    (environment steps of solved tasks)."""
     summary = store.summary()
-    arms, solved, times = store.index["arms"], store.solved, store.index["plan_s"]
-    summary["by_team_size"] = {
-        int(k): {
-            "tasks": int((arms == k).sum()),
-            "solved": int((solved & (arms == k)).sum()),
-            "median_plan_s": float(np.median(times[solved & (arms == k)])) if (solved & (arms == k)).any() else float("nan"),
-        }
-        for k in np.unique(arms)
-    }
+    arms, solved, times, steps = store.index["arms"], store.solved, store.index["plan_s"], store.index["steps"]
+
+    def team_row(k):
+        done = solved & (arms == k)
+        return {"tasks": int((arms == k).sum()), "solved": int(done.sum()),
+                "median_plan_s": float(np.median(times[done])) if done.any() else float("nan"),
+                "mean_steps": float(steps[done].mean()) if done.any() else float("nan")}
+
+    summary["by_team_size"] = {int(k): team_row(k) for k in np.unique(arms)}
     return summary
 
 
@@ -45,7 +46,8 @@ def _print_report(summary: dict) -> None:
     print(f"{summary['solved']}/{summary['tasks']} tasks solved; median plan {summary['median_plan_s']:.3f} s, "
           f"95th percentile {summary['p95_plan_s']:.3f} s; outcomes {summary['status']}")
     for k, row in summary["by_team_size"].items():
-        print(f"  {k:2d} arms: {row['solved']}/{row['tasks']} solved, median plan {row['median_plan_s']:.3f} s")
+        print(f"  {k:2d} arms: {row['solved']}/{row['tasks']} solved, median plan {1e3 * row['median_plan_s']:.1f} ms, "
+              f"mean path {row['mean_steps']:.1f} steps")
 
 
 def main(argv=None) -> None:

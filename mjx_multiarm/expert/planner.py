@@ -2,11 +2,13 @@
 
 The planner searches the 6k-D space of a k-arm task from the start to the goal
 configuration. Validity comes from the project's own collision model (the geoms the
-environment checks), through jitted JAX kernels called with numpy arrays: one call per
-state, one vectorized call per edge (a ``MotionValidator`` that checks the straight motion
-at 0.05 rad resolution in every joint). The search stops at an iteration cap or a time cap;
-only exact solutions count. Solutions are shortcut with OMPL's ``PathSimplifier`` (whose
-edges go through the same validator).
+environment checks), evaluated by the compiled checker of :mod:`mjx_multiarm.expert.checker`:
+one call per state, one per edge (a ``MotionValidator`` that checks the straight motion at
+0.05 rad resolution in every joint). The search stops at an iteration cap or a time cap;
+only exact solutions count. Solutions are shortcut with OMPL's ``PathSimplifier``
+(``reduceVertices`` then ``ropeShortcutPath``; edges through the same validator): after
+decimation into environment steps its paths are as short as ``simplifyMax``'s B-spline
+smoothing gives, at a quarter to a third of the planning time (benchmarks/RESULTS.md).
 
 Determinism: OMPL's global seed is set from (seed, task id) before a fresh planner and
 simplifier are built for each task, so a task's plan does not depend on what the process
@@ -17,17 +19,13 @@ cuts the search.
 from __future__ import annotations
 
 import dataclasses
-import functools
-import math
 import time
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from mjx_multiarm.collision import SWEEP_RESOLUTION, scene_contacts
+from mjx_multiarm.collision import SWEEP_RESOLUTION
+from mjx_multiarm.expert.checker import CollisionChecker
 from mjx_multiarm.robot import NUM_JOINTS
-from mjx_multiarm.scene import build_scene
 
 #: Outcomes of a planning attempt (stored as their index).
 STATUSES = ("solved", "start_in_collision", "goal_in_collision", "out_of_bounds", "iteration_limit", "time_limit", "replay_collision")
@@ -43,7 +41,7 @@ class PlannerConfig:
       time_limit: wall-clock cap per task (s).
       resolution: largest joint motion (rad) between two collision checks of an edge.
       range: longest tree extension (rad, Euclidean in the composite space).
-      simplify: shortcut the solution path.
+      simplify: shortcut the solution path (vertex reduction, then rope shortcuts).
       attempts: plans tried per task (new seeds) until the decimated steps pass the
         environment's own swept check (see :mod:`mjx_multiarm.expert.solve`).
     """
@@ -80,78 +78,6 @@ class PlanResult:
     @property
     def reason(self) -> str:
         return STATUSES[self.status]
-
-
-#: Configurations per kernel call; larger queries are split (bounds the compiled shapes).
-MAX_BATCH = 256
-#: Smallest padded batch (queries are padded to powers of two from here to MAX_BATCH).
-MIN_BATCH = 8
-
-
-@functools.cache
-def _collision_kernel(num_arms: int):
-    """jit: (base_pos [k,3], base_quat [k,4], joints [n,k,6]) -> [n] any arm in collision.
-
-    Compiled for every padded batch size when first built, so that planning times do not
-    include compilation.
-    """
-    scene = build_scene(num_arms)
-
-    @jax.jit
-    def collided(base_pos, base_quat, joints):
-        active = jnp.ones(joints.shape[:-1], bool)
-        return scene_contacts(scene, base_pos, base_quat, joints, active).collided.any(axis=-1)
-
-    pos, quat = jnp.zeros((num_arms, 3)), jnp.zeros((num_arms, 4)).at[:, 0].set(1.0)
-    size = MIN_BATCH
-    while size <= MAX_BATCH:
-        collided(pos, quat, jnp.zeros((size, num_arms, NUM_JOINTS))).block_until_ready()
-        size *= 2
-    return collided
-
-
-class CollisionChecker:
-    """Numpy-facing collision queries of one task's arms (composite vectors [..., 6k])."""
-
-    def __init__(self, base_pos, base_quat, joint_range, resolution: float = SWEEP_RESOLUTION):
-        self.num_arms = len(base_pos)
-        self.base_pos = jnp.asarray(base_pos, jnp.float32)
-        self.base_quat = jnp.asarray(base_quat, jnp.float32)
-        self.lower = np.tile(joint_range[:, 0], self.num_arms)
-        self.upper = np.tile(joint_range[:, 1], self.num_arms)
-        self.resolution = resolution
-        self._kernel = _collision_kernel(self.num_arms)
-
-    def collided(self, configs) -> np.ndarray:
-        """[n] bool for composite configurations [n, 6k] (padded to a power of two inside)."""
-        configs = np.asarray(configs, np.float32)
-        if len(configs) > MAX_BATCH:
-            return np.concatenate([self.collided(configs[i : i + MAX_BATCH]) for i in range(0, len(configs), MAX_BATCH)])
-        n = len(configs)
-        size = max(MIN_BATCH, 1 << (n - 1).bit_length())
-        padded = np.concatenate([configs, np.repeat(configs[-1:], size - n, axis=0)])
-        joints = padded.reshape(size, self.num_arms, NUM_JOINTS)
-        return np.asarray(self._kernel(self.base_pos, self.base_quat, joints))[:n]
-
-    def in_bounds(self, config) -> bool:
-        return bool(np.all(config >= self.lower) and np.all(config <= self.upper))
-
-    def steps_free(self, start, deltas, substeps: int) -> bool:
-        """Executing ``deltas`` [T, 6k] from ``start`` as the environment does (float32, joint
-        limits, ``substeps`` checks per step) never collides."""
-        joints = [np.asarray(start, np.float32)]
-        for delta in np.asarray(deltas, np.float32):
-            joints.append(np.clip(joints[-1] + delta, self.lower, self.upper).astype(np.float32))
-        joints = np.stack(joints)
-        fractions = (np.arange(1, substeps + 1, dtype=np.float32) / substeps)[:, None, None]
-        configs = joints[:-1] + fractions * (joints[1:] - joints[:-1])
-        return not self.collided(configs.reshape(-1, joints.shape[-1])).any()
-
-    def motion_free(self, start, end) -> bool:
-        """The straight motion start -> end (start assumed valid) is collision-free."""
-        steps = max(1, math.ceil(float(np.max(np.abs(end - start))) / self.resolution - 1e-9))
-        fractions = np.arange(1, steps + 1)[:, None] / steps
-        return not self.collided(start + fractions * (end - start)).any()
 
 
 def task_seed(seed: int, task_id: int) -> int:
@@ -192,7 +118,7 @@ def plan(checker: CollisionChecker, start, goal, config: PlannerConfig = Planner
     buffers = np.empty((2, dim))
 
     def state_valid(state) -> bool:
-        return not checker.collided(read(state, buffers[0])[None])[0]
+        return checker.state_free(read(state, buffers[0]))
 
     class EdgeValidator(ob.MotionValidator):
         def checkMotion(self, s1, s2):  # noqa: N802 (OMPL's name)
@@ -229,8 +155,10 @@ def plan(checker: CollisionChecker, start, goal, config: PlannerConfig = Planner
         status = ITERATION_LIMIT if iterations[0] > config.iterations else TIME_LIMIT
         return PlanResult(status, None, time.perf_counter() - clock, used)
     path = problem.getSolutionPath()
-    if config.simplify:
-        og.PathSimplifier(si).simplifyMax(path)
+    if config.simplify:  # measured: as short as simplifyMax after decimation, at a third of its checks
+        simplifier = og.PathSimplifier(si)
+        simplifier.reduceVertices(path)
+        simplifier.ropeShortcutPath(path)
     waypoints = np.empty((path.getStateCount(), dim))
     for i in range(len(waypoints)):
         read(path.getState(i), waypoints[i])

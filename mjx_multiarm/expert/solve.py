@@ -3,9 +3,10 @@
 A task's expert is the delta-joint step sequence of its decimated RRT-Connect plan
 (:mod:`mjx_multiarm.expert.planner`, :mod:`mjx_multiarm.expert.decimate`). Before it is
 accepted the sequence is executed the way the environment executes it (float32 joints,
-joint limits, the same swept check at the same substeps); the planner's edge checks sample
-other configurations, so a sub-millimetre graze can pass one check and fail the other. On
-such a disagreement the task is planned again with the next seed, up to
+joint limits, the same swept check at the same substeps, keeping
+:data:`~mjx_multiarm.expert.checker.REPLAY_MARGIN` of clearance for the environment's float32
+arithmetic); the planner's edge checks sample other configurations, so a sub-millimetre
+graze can pass one check and fail the other. On such a disagreement the task is planned again with the next seed, up to
 ``PlannerConfig.attempts`` times, so every stored expert replays without collision.
 """
 

@@ -185,6 +185,19 @@ class ExpertStore:
             raise ValueError(f"{self.path}: corrupt expert data for task {int(task_id)} (checksum mismatch)")
         return block.reshape(int(self.index["steps"][i]), int(self.index["arms"][i]), 6)
 
+    def packed(self, task_ids, max_steps: int, max_arms: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(deltas [S, max_arms, 6], offsets [B], lengths [B]): the tasks' step sequences
+        back to back (task b's steps are ``deltas[offsets[b] : offsets[b] + lengths[b]]``),
+        cut at ``max_steps``; empty arm slots are zero. Memory grows with the steps actually
+        planned, not with ``max_steps`` per task."""
+        blocks = [self.deltas(task_id)[:max_steps] for task_id in task_ids]
+        lengths = np.array([len(b) for b in blocks], np.int32)
+        offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
+        out = np.zeros((int(lengths.sum()), max_arms, 6), np.float32)
+        for block, offset in zip(blocks, offsets):
+            out[offset : offset + len(block), : block.shape[1]] = block
+        return out, offsets, lengths
+
     def padded(self, task_ids, max_steps: int, max_arms: int) -> tuple[np.ndarray, np.ndarray]:
         """(deltas [B, max_steps, max_arms, 6], lengths [B]) for a batch of task ids.
 
