@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -21,7 +22,7 @@ from mjx_multiarm.expert.planner import STATUSES, PlannerConfig
 from mjx_multiarm.expert.precompute import precompute
 from mjx_multiarm.expert.replan import replan_episode
 from mjx_multiarm.expert.solve import solve_task
-from mjx_multiarm.expert.store import ExpertStore, ExpertTable, save_experts
+from mjx_multiarm.expert.store import ExpertStore, ExpertTable, merge_experts, save_experts
 from mjx_multiarm.robot import load_arm
 from mjx_multiarm.tasks.dataset import save_tasks
 from mjx_multiarm.tasks.types import take, with_slots
@@ -121,6 +122,10 @@ def test_expert_file_round_trip_and_corruption(tmp_path, solved):
     padded, lengths = store.padded(store.task_ids[::-1], 40, 3)
     assert padded.shape == (len(solved), 40, 3, 6)
     np.testing.assert_array_equal(lengths, [min(40, len(r.deltas)) for r in solved[::-1]])
+    packed, offsets, packed_lengths = store.packed(store.task_ids[::-1], 40, 3)
+    np.testing.assert_array_equal(packed_lengths, lengths)
+    for b in range(len(solved)):  # the same steps, back to back
+        np.testing.assert_array_equal(packed[offsets[b] : offsets[b] + lengths[b]], padded[b, : lengths[b]])
     assert store.summary()["solved"] == len(solved)
     with pytest.raises(KeyError, match="no expert for task"):
         store.deltas(-5)
@@ -140,6 +145,26 @@ def test_expert_file_round_trip_and_corruption(tmp_path, solved):
         ExpertStore(tmp_path / "junk.experts")
     with pytest.raises(FileNotFoundError):
         ExpertStore(tmp_path / "missing.experts")
+
+
+def test_merging_thousands_of_parts_keeps_few_files_open(tmp_path, solved):
+    """A 100,000-task precompute leaves 6,250 chunk files: merging opens one at a time."""
+    resource = pytest.importorskip("resource")
+    parts = []
+    for k in range(120):
+        result = dataclasses.replace(solved[k % len(solved)], task_id=k)
+        parts.append(tmp_path / f"part_{k}.experts")
+        save_experts(parts[-1], ExpertTable.from_results([result]))
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (min(64, hard), hard))
+    try:
+        merge_experts(tmp_path / "all.experts", parts)
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+    merged = ExpertStore(tmp_path / "all.experts")
+    merged.verify()
+    assert merged.task_ids.tolist() == list(range(120))
+    np.testing.assert_array_equal(merged.deltas(119), solved[119 % len(solved)].deltas)
 
 
 def _same_experts(a: ExpertStore, b: ExpertStore) -> None:

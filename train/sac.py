@@ -193,6 +193,11 @@ def _settings(args) -> dict:
     }
 
 
+def _megabytes(tree) -> str:
+    """Size of a pytree's arrays, e.g. '52.3 MB' (0 for None)."""
+    return f"{sum(x.nbytes for x in jax.tree.leaves(tree)) / 1e6:.1f} MB"
+
+
 def _generated_tasks(path: pathlib.Path, arms, count: int, seed: int):
     if not path.exists():
         spec = GenerationSpec(count=count, arm_counts=tuple(arms), mode="static", seed=seed, max_arms=max(arms), chunk_size=256)
@@ -330,6 +335,8 @@ def main(argv=None) -> None:
         sys.exit(f"error: {error}")
     checkpoints = Checkpoints(run_dir / "checkpoints", keep=3, with_buffer=settings["with_buffer"])
     state = trainer.init(jax.random.key(settings["seed"]))
+    _log(f"device memory: task bank {_megabytes(bank)} ({bank.size} tasks), demonstrations {_megabytes(demos)}, "
+         f"replay buffer {_megabytes(state.buffer)}, evaluation tasks {_megabytes(eval_bank)}")
     elapsed, iteration = 0.0, 0
     if args.resume:
         try:

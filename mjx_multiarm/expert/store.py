@@ -231,13 +231,19 @@ class ExpertStore:
 
 
 def merge_experts(path: str | os.PathLike, parts: list[str | os.PathLike], metadata: dict | None = None) -> None:
-    """Concatenate expert files into one (streams the deltas; verifies every part first)."""
-    stores = [ExpertStore(p) for p in parts]
-    for store in stores:
+    """Concatenate expert files into one, verifying every part first. One part is open at a
+    time (a 100,000-task precompute leaves thousands of chunk files)."""
+    indexes, sizes = [], []
+    for part in parts:
+        store = ExpertStore(part)
         store.verify()
-    index = {name: np.concatenate([s.index[name] for s in stores]) if stores else np.zeros(0, INDEX[name]) for name in INDEX}
+        indexes.append({name: np.array(store.index[name]) for name in INDEX})
+        sizes.append(len(store._rows))
+    index = {name: np.concatenate([i[name] for i in indexes]) if indexes else np.zeros(0, INDEX[name]) for name in INDEX}
     if len(np.unique(index["task_id"])) != len(index["task_id"]):
         raise ValueError(f"{path}: the parts hold duplicate task ids")
-    shift = np.cumsum([0] + [len(s._rows) for s in stores])
-    index["offset"] = np.concatenate([s.index["offset"] + shift[i] for i, s in enumerate(stores)]) if stores else index["offset"]
-    _write(path, index, int(shift[-1]), (np.asarray(s._rows) for s in stores), metadata or {})
+    shift = np.cumsum([0] + sizes)
+    if indexes:
+        index["offset"] = np.concatenate([i["offset"] + shift[k] for k, i in enumerate(indexes)])
+    rows = (np.array(ExpertStore(part)._rows) for part in parts)
+    _write(path, index, int(shift[-1]), rows, metadata or {})
