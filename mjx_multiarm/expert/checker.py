@@ -279,8 +279,7 @@ def _collides(joints, margin, base_pos, base_rot, body_pos, body_rot, body_joint
     boxes = np.empty((k, nbox, 4, 3))
     centres = np.empty((k, ncap + nbox, 3))
     radii = np.empty((k, ncap + nbox))
-    arm_centre = np.empty((k, 3))
-    arm_radius = np.empty(k)
+    arm_radius = np.empty(k)  # about the base: all of an arm lies within it
     for i in range(k):
         _pose_arm(base_pos[i], base_rot[i], joints[i], body_pos, body_rot, body_joint, joint_axis,
                   capsule_body, capsule_ends, box_body, box_frame, capsules[i], boxes[i])
@@ -295,7 +294,6 @@ def _collides(joints, margin, base_pos, base_rot, body_pos, body_rot, body_joint
             if low < margin:
                 return True
         _bounding_spheres(capsules[i], boxes[i], radius, box_half, centres[i], radii[i])
-        arm_centre[i] = base_pos[i]
         arm_radius[i] = 0.0
         for g in range(ncap + nbox):
             d2 = 0.0
@@ -306,23 +304,26 @@ def _collides(joints, margin, base_pos, base_rot, body_pos, body_rot, body_joint
         for j in range(i + 1, k):
             d2 = 0.0
             for m in range(3):
-                d2 += (arm_centre[i, m] - arm_centre[j, m]) ** 2
+                d2 += (base_pos[i, m] - base_pos[j, m]) ** 2
             reach = arm_radius[i] + arm_radius[j] + margin
-            if d2 > reach * reach:
-                continue
-            for p in range(between_pairs.shape[0]):
-                a, b = between_pairs[p, 0], between_pairs[p, 1]
-                if _spheres_apart(centres[i], radii[i], a, centres[j], radii[j], b, margin):
-                    continue
-                if _geom_distance(capsules[i], boxes[i], a, capsules[j], boxes[j], b, radius, box_half) < margin:
-                    return True
-    for i in range(k):
-        for p in range(self_pairs.shape[0]):
-            a, b = self_pairs[p, 0], self_pairs[p, 1]
-            if _spheres_apart(centres[i], radii[i], a, centres[i], radii[i], b, margin):
-                continue
-            if _geom_distance(capsules[i], boxes[i], a, capsules[i], boxes[i], b, radius, box_half) < margin:
+            if d2 <= reach * reach and _pairs_touch(between_pairs, i, j, capsules, boxes, centres, radii, radius,
+                                                    box_half, margin):
                 return True
+    for i in range(k):
+        if _pairs_touch(self_pairs, i, i, capsules, boxes, centres, radii, radius, box_half, margin):
+            return True
+    return False
+
+
+@_jit
+def _pairs_touch(pairs, i, j, capsules, boxes, centres, radii, radius, box_half, margin):
+    """Whether any geom pair (a of arm i, b of arm j) of ``pairs`` [P, 2] is within ``margin``."""
+    for p in range(pairs.shape[0]):
+        a, b = pairs[p, 0], pairs[p, 1]
+        if _spheres_apart(centres[i], radii[i], a, centres[j], radii[j], b, margin):
+            continue
+        if _geom_distance(capsules[i], boxes[i], a, capsules[j], boxes[j], b, radius, box_half) < margin:
+            return True
     return False
 
 
