@@ -17,7 +17,8 @@ Writes ``static.md`` / ``static.csv`` (success by team size x difficulty bin, wi
 paper's numbers), ``dynamic.md`` / ``dynamic.csv`` (by target speed), and
 ``outcomes.csv`` (one row per task and mode) to ``--out``. ``--json`` ends the output with
 one JSON line: ``success[arms][bin]``, ``collision_rate``, ``timeout_rate``,
-``steps_to_success`` and the same under ``dynamic``.
+``steps_to_success``, ``by_team_size[arms]`` (success, collision, timeout and arm reach
+rates) and the same under ``dynamic``.
 """
 
 from __future__ import annotations
@@ -97,7 +98,7 @@ def birrt_outcomes(tasks: Tasks, dynamic: bool, episode_steps: int, config: Plan
             success[i], steps[i], plan_s[i] = result.status == SOLVED, len(result.deltas), result.plan_s
         if progress:
             progress.update(i + 1, i + 1, f"{int(success[: i + 1].sum())} succeeded")
-    return Outcomes(team, success, collision, ~success & ~collision, steps), plan_s
+    return Outcomes(team, success, collision, ~success & ~collision, steps, np.where(success, team, 0)), plan_s
 
 
 def success_table(outcomes: Outcomes, bins: np.ndarray, names: list[str]) -> dict[int, dict[str, float | None]]:
@@ -114,10 +115,23 @@ def success_table(outcomes: Outcomes, bins: np.ndarray, names: list[str]) -> dic
     return table
 
 
+def team_rates(outcomes: Outcomes) -> dict[int, dict[str, float]]:
+    """Per team size: success, collision and timeout rates, and the share of arms within
+    tolerance when their episode ended (``arm_reach_rate``)."""
+    rates = {}
+    for size in sorted(set(outcomes.team.tolist())):
+        mine = outcomes.select(outcomes.team == size)
+        rates[int(size)] = {"tasks": int(len(mine.team)), "success_rate": float(mine.success.mean()),
+                            "collision_rate": float(mine.collision.mean()), "timeout_rate": float(mine.timeout.mean()),
+                            "arm_reach_rate": float(mine.reached.sum() / mine.team.sum())}
+    return rates
+
+
 def summary(outcomes: Outcomes, bins: np.ndarray, names: list[str]) -> dict:
     won = outcomes.success
     return {
         "success": success_table(outcomes, bins, names),
+        "by_team_size": team_rates(outcomes),
         "tasks": int(len(won)),
         "collision_rate": float(outcomes.collision.mean()),
         "timeout_rate": float(outcomes.timeout.mean()),
@@ -136,7 +150,11 @@ def markdown(title: str, result: dict, names: list[str], paper: dict | None) -> 
         lines.append(f"| {size} | " + " | ".join(cells) + " |")
     steps = result["steps_to_success"]
     lines += ["", f"{result['tasks']} tasks; collision rate {result['collision_rate']:.3f}, timeout rate "
-              f"{result['timeout_rate']:.3f}, mean steps to success {'-' if steps is None else f'{steps:.1f}'}", ""]
+              f"{result['timeout_rate']:.3f}, mean steps to success {'-' if steps is None else f'{steps:.1f}'}", "",
+              "| arms | tasks | success | collisions | timeouts | arms reached |", "|---|---|---|---|---|---|"]
+    lines += [f"| {size} | {r['tasks']} | {r['success_rate']:.3f} | {r['collision_rate']:.3f} | {r['timeout_rate']:.3f} | "
+              f"{r['arm_reach_rate']:.3f} |" for size, r in result["by_team_size"].items()]
+    lines.append("")
     return "\n".join(lines)
 
 
@@ -236,13 +254,13 @@ def main(argv=None) -> None:
         atomic_write(out / f"{mode}.md", lambda f, t=text: f.write(t.encode()))
         atomic_write(out / f"{mode}.csv", lambda f, r=result, n=names: f.write(_csv(r, n)))
         rows += [(mode, int(subset.task_id[i]), int(outcomes.team[i]), bool(outcomes.success[i]), bool(outcomes.collision[i]),
-                  bool(outcomes.timeout[i]), int(outcomes.steps[i])) for i in range(subset.num_tasks)]
+                  bool(outcomes.timeout[i]), int(outcomes.steps[i]), int(outcomes.reached[i])) for i in range(subset.num_tasks)]
         if mode == "static":
             report.update(result)
         else:
             report["dynamic"] = result
     table = io.StringIO()
-    csv.writer(table).writerows([("mode", "task_id", "arms", "success", "collision", "timeout", "steps"), *rows])
+    csv.writer(table).writerows([("mode", "task_id", "arms", "success", "collision", "timeout", "steps", "arms_reached"), *rows])
     atomic_write(out / "outcomes.csv", lambda f: f.write(table.getvalue().encode()))
     atomic_write(out / "summary.json", lambda f: f.write(json.dumps(report, indent=2).encode()))
     print(f"results in {out}", file=sys.stderr)

@@ -27,7 +27,11 @@ Rules (documented here once):
   gives no reason to end an episode early by colliding.
 - An episode ends on success, on any collision (a failure for the whole team), or after
   ``max_steps`` steps (a failure; ``truncated`` marks it for bootstrapping). Stepping a
-  finished episode returns it unchanged, with zero reward.
+  finished episode returns it unchanged, with zero reward. With
+  ``EnvConfig.end_on_collision=False`` (a training option, as RoboBallet's) a collision
+  does not end the episode: every arm that collided is put back where it was before the
+  step (its last collision-free pose) and receives the ``collision`` reward; the others
+  keep their motion. Success still needs a step without any collision.
 - Tolerances (eps_p m, eps_r rad) live in the state, so a curriculum changes them without
   recompiling. Reaching counts against the target of that step (moving targets move first).
 """
@@ -92,6 +96,8 @@ class EnvConfig:
         (:mod:`mjx_multiarm.tasks.dynamic`); otherwise every target is static.
       tolerance: default (eps_p m, eps_r rad) at reset.
       sweep_resolution: largest joint motion (rad) between two collision checks of a step.
+      end_on_collision: a collision ends the episode (the paper's rule, and evaluation's);
+        False restores the colliding arms instead (module rules).
     """
 
     max_steps: int = 500
@@ -102,6 +108,7 @@ class EnvConfig:
     dynamic_targets: bool = False
     tolerance: tuple[float, float] = EVAL_TOLERANCE
     sweep_resolution: float = SWEEP_RESOLUTION
+    end_on_collision: bool = True
 
     def __post_init__(self):
         if self.max_steps < 1:
@@ -283,6 +290,9 @@ class ReachingEnv:
         contacts = swept_contacts(self.scene, task.base_pos, task.base_quat, state.joints, joints, task.active, self.substeps,
                                   end_frames=frames)
         collided = contacts.collided & task.active
+        if not self.config.end_on_collision:  # training option: the colliding arms go back
+            joints = jnp.where(collided[:, None], state.joints, joints)
+            frames = self._pose(task, joints)
 
         step = state.step + 1
         arms = self._snapshot(task, joints, frames, state.target_lengths, step)
@@ -314,8 +324,9 @@ class ReachingEnv:
         if self.config.shaping:
             reward = reward + self._potential(arms) - self._potential(before)
         timeout = step >= self.config.max_steps
+        ends = any_collision if self.config.end_on_collision else jnp.zeros((), bool)
         return {"reached": reached, "success": success, "reward": jnp.where(task.active, reward, 0.0).astype(jnp.float32),
-                "done": success | any_collision | timeout, "truncated": timeout & ~success & ~any_collision}
+                "done": success | ends | timeout, "truncated": timeout & ~success & ~ends}
 
     def with_achieved_targets(self, before: State, after: State, goal: State) -> State:
         """Hindsight relabelling (Andrychowicz et al. 2017): the state ``after``, stepped from

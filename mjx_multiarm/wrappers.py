@@ -62,10 +62,11 @@ class EpisodeStats:
     collisions: jnp.ndarray
     timeouts: jnp.ndarray
     success_steps: jnp.ndarray  # sum of episode lengths of successful episodes
+    arms_reached: jnp.ndarray  # sum over episodes of the arms within tolerance when the episode ended
 
     @classmethod
     def zeros(cls, max_arms: int) -> EpisodeStats:
-        return cls(*(jnp.zeros(max_arms + 1, jnp.int32) for _ in range(5)))
+        return cls(*(jnp.zeros(max_arms + 1, jnp.int32) for _ in range(6)))
 
     def add(self, finished: State) -> EpisodeStats:
         """Count the episodes of a batch of stepped states that ended at this step."""
@@ -82,11 +83,15 @@ class EpisodeStats:
             collisions=self.collisions + count(ended & collided),
             timeouts=self.timeouts + count(ended & finished.truncated),
             success_steps=self.success_steps + jnp.zeros_like(self.episodes).at[team].add(jnp.where(ended & finished.success, finished.step, 0)),
+            arms_reached=self.arms_reached + jnp.zeros_like(self.episodes).at[team].add(jnp.where(ended, finished.reached.sum(-1), 0)),
         )
 
     def summary(self) -> dict:
-        """Host-side rates per team size with at least one episode, and over all of them."""
-        counts = {name: np.asarray(getattr(self, name)) for name in ("episodes", "successes", "collisions", "timeouts", "success_steps")}
+        """Host-side rates per team size with at least one episode, and over all of them;
+        ``arm_reach_rate``: the share of arms within tolerance when their episode ended."""
+        counts = {name: np.asarray(getattr(self, name))
+                  for name in ("episodes", "successes", "collisions", "timeouts", "success_steps", "arms_reached")}
+        arms = counts["episodes"] * np.arange(len(counts["episodes"]))
 
         def rates(sel):
             n = int(counts["episodes"][sel].sum())
@@ -97,6 +102,7 @@ class EpisodeStats:
                 "collision_rate": int(counts["collisions"][sel].sum()) / n if n else float("nan"),
                 "timeout_rate": int(counts["timeouts"][sel].sum()) / n if n else float("nan"),
                 "mean_steps_to_success": int(counts["success_steps"][sel].sum()) / won if won else float("nan"),
+                "arm_reach_rate": int(counts["arms_reached"][sel].sum()) / int(arms[sel].sum()) if n else float("nan"),
             }
 
         by_team = {int(k): rates(k) for k in np.flatnonzero(counts["episodes"])}
@@ -110,7 +116,7 @@ class BatchState:
     env: State
     rng: jax.Array
     cursor: jnp.ndarray  # next bank row in sequential order
-    tolerance: jnp.ndarray  # [2] used by the next resets; a curriculum sets it
+    tolerance: jnp.ndarray  # [max_arms, 2] used by the next resets, row k - 1 for k-arm tasks; a curriculum sets it
     stats: EpisodeStats
 
 
@@ -137,14 +143,23 @@ class AutoReset:
 
     def _reset_rows(self, rows, tolerance) -> State:
         tasks = self.bank.take(rows)
-        return jax.vmap(lambda task: self.env.reset(None, task, tolerance))(tasks)
+        team_index = tasks.active.sum(axis=-1) - 1
+        return jax.vmap(lambda task, team: self.env.reset(None, task, tolerance[team]))(tasks, team_index)
 
     def reset(self, rng, batch: int, tolerance=None) -> BatchState:
-        """``batch`` fresh environments."""
-        tolerance = jnp.asarray(self.env.config.tolerance if tolerance is None else tolerance, jnp.float32)
+        """``batch`` fresh environments. ``tolerance``: (eps_p, eps_r) for every task, or
+        [max_arms, 2], row k - 1 for tasks of k arms (default: the environment's)."""
+        tolerance = self.tolerance_table(self.env.config.tolerance if tolerance is None else tolerance)
         rng, key = jax.random.split(rng)
         rows, cursor = self._next_rows(key, jnp.zeros((), jnp.int32), jnp.ones(batch, bool))
         return BatchState(self._reset_rows(rows, tolerance), rng, cursor, tolerance, EpisodeStats.zeros(self.env.max_arms))
+
+    def tolerance_table(self, tolerance) -> jnp.ndarray:
+        """[max_arms, 2] tolerances by team size from [2] (the same for all) or [max_arms, 2]."""
+        tolerance = jnp.asarray(tolerance, jnp.float32)
+        if tolerance.shape not in ((2,), (self.env.max_arms, 2)):
+            raise ValueError(f"tolerance must have shape (2,) or ({self.env.max_arms}, 2), got {tolerance.shape}")
+        return jnp.broadcast_to(tolerance, (self.env.max_arms, 2))
 
     def step(self, state: BatchState, actions) -> tuple[BatchState, State]:
         """Step every environment with ``actions`` [B, max_arms, 6].
@@ -220,6 +235,7 @@ class Outcomes:
     collision: np.ndarray
     timeout: np.ndarray  # neither success nor collision within the episode
     steps: np.ndarray  # control steps the episode lasted
+    reached: np.ndarray  # arms within tolerance when the episode ended
 
     @classmethod
     def concatenate(cls, parts: list[Outcomes]) -> Outcomes:
@@ -235,7 +251,7 @@ class Outcomes:
             return jnp.asarray(np.bincount(self.team, weights=weights, minlength=max_arms + 1).astype(np.int32))
 
         return EpisodeStats(count(np.ones(len(self.team))), count(self.success), count(self.collision), count(self.timeout),
-                            count(np.where(self.success, self.steps, 0)))
+                            count(np.where(self.success, self.steps, 0)), count(self.reached))
 
 
 def run_episodes(env: ReachingEnv, policy, params, bank: TaskBank, steps: int | None = None, batch: int = 256) -> Outcomes:
@@ -251,5 +267,5 @@ def run_episodes(env: ReachingEnv, policy, params, bank: TaskBank, steps: int | 
         keep = slice(0, min(size, bank.size - start))
         collision = final.collided.any(axis=-1)
         parts.append(Outcomes(final.task.active.sum(axis=-1), final.success, collision & ~final.success,
-                              ~final.success & ~collision, final.step).select(keep))
+                              ~final.success & ~collision, final.step, final.reached.sum(axis=-1)).select(keep))
     return Outcomes.concatenate(parts)

@@ -130,7 +130,11 @@ class Critic(nnx.Module):
         self.head = MLP((HIDDEN + NUM_JOINTS, *MLP_LAYERS, 1), rngs, final_tanh=False)
 
     def __call__(self, obs, mask, action):
-        return self.head(jnp.concatenate([self.encoder(obs, mask), action], axis=-1))[..., 0]
+        return self.value(self.encoder(obs, mask), action)
+
+    def value(self, encoding, action):
+        """Q from an observation's ``encoding`` [..., 256] (e.g. reused across actions)."""
+        return self.head(jnp.concatenate([encoding, action], axis=-1))[..., 0]
 
 
 class TwinCritic(nnx.Module):
@@ -140,4 +144,12 @@ class TwinCritic(nnx.Module):
         self.q1, self.q2 = Critic(rngs), Critic(rngs)
 
     def __call__(self, obs, mask, action):
-        return self.q1(obs, mask, action), self.q2(obs, mask, action)
+        return self.values(self.encode(obs, mask), action)
+
+    def encode(self, obs, mask):
+        """Both critics' encodings of the observations: (e1, e2)."""
+        return self.q1.encoder(obs, mask), self.q2.encoder(obs, mask)
+
+    def values(self, encodings, action):
+        """(q1, q2) of ``action`` from the critics' ``encodings`` (as :meth:`encode` returns)."""
+        return self.q1.value(encodings[0], action), self.q2.value(encodings[1], action)

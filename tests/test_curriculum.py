@@ -73,3 +73,30 @@ def test_rejects_bad_levels_and_sizes():
         Curriculum.start(4, level=22)
     with pytest.raises(ValueError, match="environment"):
         Curriculum.start(0)
+
+
+def test_grouped_curriculum_graduates_each_group_on_its_own_episodes():
+    """Two groups (e.g. one- and two-arm tasks) in 10 environments: the first succeeds on 80 %
+    of its episodes and graduates, the second on 20 % and stays; one group of the same
+    episodes (the paper's single curriculum) sees 50 % and does not graduate."""
+    from train.curriculum import GroupedCurriculum
+
+    num_envs = 10
+    per_env = -(-WINDOW // num_envs)
+    group = np.arange(num_envs) % 2  # even environments run group 0, odd ones group 1
+    success = np.where(group == 0, np.arange(num_envs) % 10 < 8, np.arange(num_envs) % 10 < 3)  # 0,2,4,6 / 1 of 1,3,5,7,9
+    record = jax.jit(GroupedCurriculum.record)
+    grouped, single = GroupedCurriculum.start(num_envs, 2), GroupedCurriculum.start(num_envs, 1)
+    for _ in range(2 * per_env):  # each environment records its share of its own group twice over
+        grouped = record(grouped, np.ones(num_envs, bool), success, group)
+        single = record(single, np.ones(num_envs, bool), success, np.zeros(num_envs, int))
+    assert grouped.level.tolist() == [0, 0]  # odd environments never record group 0 episodes: not full
+    grouped = GroupedCurriculum.start(num_envs, 2)
+    for step in range(2 * per_env):  # environments alternate groups: every one fills both windows
+        alternating = (group + step) % 2
+        grouped = record(grouped, np.ones(num_envs, bool), np.where(alternating == 0, True, np.arange(num_envs) < 2), alternating)
+    assert grouped.level.tolist() == [1, 0]
+    np.testing.assert_allclose(np.asarray(grouped.tolerance), LEVELS[[1, 0]])
+    assert int(single.level[0]) == 0 and abs(float(single.success_rate[0]) - 0.5) < 1e-6
+    with pytest.raises(ValueError, match="group"):
+        GroupedCurriculum.start(4, 0)

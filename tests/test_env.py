@@ -274,6 +274,25 @@ def test_arms_driven_into_each_other_collide():
     assert int(final.step[0]) == hit + 1
 
 
+def test_restoring_colliding_arms_keeps_the_episode_going():
+    """end_on_collision=False (training option): the same drive into each other goes on to the
+    step limit; every colliding step puts the colliding arms back where they were, pays the
+    penalty, never counts as a success, and the arms never rest in contact."""
+    env = ReachingEnv(2, EnvConfig(max_steps=120, end_on_collision=False))
+    bank = TaskBank.from_tasks(_facing_pair(), 2)
+    final, states, _ = rollout(env, 120)(bank.tasks, jnp.asarray([0.02, 0.1]))
+    collided = np.asarray(states.collided[:, 0])  # [T, 2]
+    assert collided.any(-1).sum() >= 2  # they keep pushing into each other
+    assert bool(final.done[0]) and bool(final.truncated[0]) and int(final.step[0]) == 120
+    joints = np.concatenate([np.asarray(bank.tasks.start_joints), np.asarray(states.joints[:, 0])])
+    np.testing.assert_array_equal(joints[1:][collided], joints[:-1][collided])  # restored
+    assert np.all(np.asarray(states.reward[:, 0])[collided] <= -0.05 + 0.01 + 1e-6)
+    assert not np.asarray(states.success[:, 0])[collided.any(-1)].any()
+    contacts = jax.jit(jax.vmap(lambda q: scene_contacts(env.scene, bank.tasks.base_pos[0], bank.tasks.base_quat[0], q,
+                                                          bank.tasks.active[0]).min_distance.min()))
+    assert float(contacts(jnp.asarray(joints, jnp.float32)).min()) >= 0
+
+
 def test_thin_obstacle_is_not_tunnelled_through_in_one_step():
     """Full-speed steps whose end points are both free but which pass through the other arm.
 

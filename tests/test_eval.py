@@ -52,6 +52,12 @@ def test_benchmark_policy_and_birrt_tables(files, tmp_path, capsys):
     birrt = last_json(capsys)
     assert birrt["success"]["1"]["average"] == 1.0 and birrt["success"]["2"]["average"] == 1.0
     assert birrt["steps_to_success"] > 0 and "dynamic" not in birrt
+    for result, won in ((policy, 0.0), (birrt, 1.0)):  # per team size: rates add up, arms reached follow success
+        for team in ("1", "2"):
+            row = result["by_team_size"][team]
+            assert row["success_rate"] == won and row["tasks"] == 2
+            assert row["success_rate"] + row["collision_rate"] + row["timeout_rate"] == pytest.approx(1.0)
+            assert won <= row["arm_reach_rate"] <= 1.0 and (won == 1.0 or row["arm_reach_rate"] == 0.0)
 
 
 def test_benchmark_bad_checkpoints(files, tmp_path):

@@ -18,6 +18,7 @@ from mjx_multiarm.observation import EE_POSE, TARGET_POSE, TARGET_POSE_PREV
 from mjx_multiarm.tasks.types import take, with_slots
 from mjx_multiarm.wrappers import TaskBank
 from train.agent import SACConfig
+from train.curriculum import LEVELS
 from train.trainer import Demonstrations, FailedQueue, TrainConfig, Trainer, hindsight_transitions
 
 
@@ -171,3 +172,38 @@ def test_data_parallel_over_two_host_devices(tmp_path):
     result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=900)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "sharded ok 24" in result.stdout
+
+
+def test_expert_share_keeps_demonstrations_in_their_own_buffer(one_arm):
+    """expert_share = 0.25: expert replays fill the expert buffer (not the main one) and every
+    batch holds exactly a quarter of expert transitions, however many policy rows arrive."""
+    tasks, store = one_arm
+    trainer = _trainer(tasks, store, (1e-4, 1e-4), expert_share=0.25, expert_buffer=512)
+    state, _ = trainer.iteration(trainer.init(jax.random.key(0)))
+    assert int(state.buffer.inserted) == 16 and not np.asarray(state.buffer.data.expert[:16]).any()
+    assert int(state.expert_buffer.inserted) == int(state.expert_steps) > 0
+    batch = trainer._sample(state, jax.random.key(3))
+    assert int(np.asarray(batch.expert).sum()) == 4  # round(0.25 x 16)
+    with pytest.raises(ValueError, match="expert_share"):
+        TrainConfig(expert_share=0.25, expert=False)
+    with pytest.raises(ValueError, match="expert_buffer"):
+        _trainer(tasks, store, (1e-4, 1e-4), expert_share=0.25, expert_buffer=8)
+
+
+def test_curriculum_by_team_resets_each_team_size_at_its_own_level(generated):
+    """With one curriculum per team size, a reset 2-arm task gets the 2-arm level's tolerance
+    and a 1-arm task the 1-arm level's; the run's level is the lowest of the bank's teams."""
+    tasks = take(generated, np.flatnonzero(generated.num_arms <= 2)[:8])
+    env = ReachingEnv(2, EnvConfig(max_steps=4))
+    trainer = Trainer(env, TaskBank.from_tasks(tasks, 2), None,
+                      TrainConfig(num_envs=16, rollout_steps=2, updates_per_iteration=1, batch_size=8, buffer_size=512, warmup=10**6,
+                                  expert=False, curriculum_by_team=True))
+    state = trainer.init(jax.random.key(0))
+    curriculum = state.curriculum.replace(groups=state.curriculum.groups.replace(level=jnp.asarray([5, 2])))
+    table = trainer._tolerances(curriculum)
+    np.testing.assert_allclose(np.asarray(table), LEVELS[[5, 2]])
+    envs = trainer.autoreset.reset(jax.random.key(1), 16, table)
+    teams = np.asarray(envs.env.task.active.sum(-1))
+    assert set(teams.tolist()) == {1, 2}
+    np.testing.assert_allclose(np.asarray(envs.env.tolerance), LEVELS[np.where(teams == 1, 5, 2)])
+    assert int(trainer.level(curriculum)) == 2

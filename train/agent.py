@@ -97,10 +97,14 @@ def td_target(agent: Agent, batch: Transitions, key, config: SACConfig = SACConf
     return jax.lax.stop_gradient(batch.reward + config.gamma * continuing * (target_q - jnp.exp(agent.log_alpha) * next_log_prob))
 
 
-def critic_loss(agent: Agent, critic: nnx.State, batch: Transitions, target) -> tuple[jnp.ndarray, tuple[jnp.ndarray, jnp.ndarray]]:
-    """(twin-critic TD loss of parameters ``critic`` against ``target``, (q1, q2))."""
-    q1, q2 = nnx.merge(agent.critic_def, critic)(batch.obs, batch.mask, batch.action)
-    return jnp.mean((q1 - target) ** 2) + jnp.mean((q2 - target) ** 2), (q1, q2)
+def critic_loss(agent: Agent, critic: nnx.State, batch: Transitions, target) -> tuple[jnp.ndarray, tuple]:
+    """(twin-critic TD loss of parameters ``critic`` against ``target``, (q1, q2, encodings)):
+    the critics' encodings of ``batch.obs`` come back so that the actor loss, which values
+    its own actions with the same critics, does not encode the observations again."""
+    critics = nnx.merge(agent.critic_def, critic)
+    encodings = critics.encode(batch.obs, batch.mask)
+    q1, q2 = critics.values(encodings, batch.action)
+    return jnp.mean((q1 - target) ** 2) + jnp.mean((q2 - target) ** 2), (q1, q2, encodings)
 
 
 def expert_bc_loss(action, batch: Transitions, q_data, q_policy) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -124,13 +128,14 @@ def sac_update(agent: Agent, batch: Transitions, key, config: SACConfig = SACCon
     alpha = jnp.exp(agent.log_alpha)
     target = td_target(agent, batch, next_key, config, std_scale)
 
-    (c_loss, (q1, q2)), c_grads = jax.value_and_grad(lambda p: critic_loss(agent, p, batch, target), has_aux=True)(agent.critic)
+    (c_loss, (q1, q2, encodings)), c_grads = jax.value_and_grad(lambda p: critic_loss(agent, p, batch, target), has_aux=True)(agent.critic)
+    encodings = jax.lax.stop_gradient(encodings)  # the actor's gradient reaches the critics through the action only
 
     def actor_loss(params):
         actor = nnx.merge(agent.actor_def, params)
         mean, log_std = actor.distribution(batch.obs, batch.mask, std_scale)
         action, log_prob = actor.sample(mean, log_std, actor_key)
-        q = jnp.minimum(*agent.critics()(batch.obs, batch.mask, action))
+        q = jnp.minimum(*agent.critics().values(encodings, action))
         loss = jnp.mean(alpha * log_prob - q)
         bc, bc_share = jnp.zeros(()), jnp.zeros(())
         if config.expert_bc:

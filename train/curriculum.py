@@ -14,6 +14,11 @@ episodes, and the policy graduates once every environment has filled its share. 
 episodes other than the one in progress are ordinary samples of the policy's episodes, so
 this rate estimates the per-episode success rate without the length bias. The state lives
 on device, so the graduation test runs inside the jitted training loop.
+
+:class:`GroupedCurriculum` keeps one such curriculum per group of episodes: one group for
+all (the paper), or one per team size, so that each team size graduates on its own
+episodes (with 1-4 arms mixed, the success of all teams together is held below 70 % by the
+hardest team size, and no team leaves the first level).
 """
 
 from __future__ import annotations
@@ -78,3 +83,39 @@ class Curriculum:
         graduate = full & (state.success_rate >= GRADUATION_RATE) & (self.level < len(LEVELS) - 1)
         promoted = Curriculum.start(num_envs).replace(level=self.level + 1)
         return jax.tree.map(lambda up, stay: jnp.where(graduate, up, stay), promoted, state)
+
+
+@struct.dataclass
+class GroupedCurriculum:
+    """Independent curricula, one per group of episodes; ``groups`` has a leading dim [G]."""
+
+    groups: Curriculum
+
+    @classmethod
+    def start(cls, num_envs: int, num_groups: int = 1, level: int = 0) -> GroupedCurriculum:
+        """``num_groups`` curricula at level ``level`` with empty windows."""
+        if num_groups < 1:
+            raise ValueError(f"a grouped curriculum needs at least one group, got {num_groups}")
+        one = Curriculum.start(num_envs, level)
+        return cls(jax.tree.map(lambda x: jnp.broadcast_to(x, (num_groups, *x.shape)), one))
+
+    @property
+    def level(self) -> jnp.ndarray:
+        """[G] current level of each group."""
+        return self.groups.level
+
+    @property
+    def tolerance(self) -> jnp.ndarray:
+        """[G, 2] (eps_p, eps_r) of each group's level."""
+        return jnp.asarray(LEVELS)[self.groups.level]
+
+    @property
+    def success_rate(self) -> jnp.ndarray:
+        """[G] success over each group's recorded episodes at its level."""
+        return jax.vmap(lambda c: c.success_rate)(self.groups)
+
+    def record(self, ended, success, group) -> GroupedCurriculum:
+        """Add the episodes that ended (``ended``, ``success``, ``group``: [E]) to their groups."""
+        ids = jnp.arange(self.groups.level.shape[0])[:, None]
+        mine = ended[None] & (group[None] == ids)
+        return GroupedCurriculum(jax.vmap(Curriculum.record, in_axes=(0, 0, None))(self.groups, mine, success))

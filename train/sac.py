@@ -89,6 +89,9 @@ class Preset:
     hindsight: int = 0  # hindsight-relabelled copies of each policy transition (TrainConfig.hindsight)
     shaping: float = 0.0  # potential-based reward shaping (EnvConfig.shaping)
     policy_average: float = 0.0  # Polyak rate of the deployed average actor (SACConfig.policy_average)
+    curriculum_by_team: bool = False  # one curriculum level per team size (TrainConfig.curriculum_by_team)
+    collisions: str = "end"  # training collisions: "end" the episode (the paper) or "restore" the arm (EnvConfig.end_on_collision)
+    expert_share: float = 0.0  # fraction of each batch from a separate expert buffer (TrainConfig.expert_share)
 
 
 PRESETS = {
@@ -146,6 +149,13 @@ def _parser() -> argparse.ArgumentParser:
                         "actor's parameters, updated at this rate per gradient update (default: the preset's; 0 = the "
                         "latest actor, as the original)")
     parser.add_argument("--no-curriculum", action="store_true", help="train at 2 cm / 0.1 rad from the start")
+    parser.add_argument("--curriculum-by-team", type=_flag, help="1: every team size has its own curriculum level, "
+                        "graduating on its own episodes; 0: one level for all (the original; default: the preset's)")
+    parser.add_argument("--collisions", choices=["end", "restore"], help="during training, a collision ends the episode "
+                        "(the original) or puts the colliding arms back with the collision penalty and goes on "
+                        "(default: the preset's; evaluation always ends it)")
+    parser.add_argument("--expert-share", type=float, help="draw this fraction of every batch from a separate buffer of "
+                        "expert transitions (default: the preset's; 0 = one buffer for all, the original)")
     parser.add_argument("--checkpoint-minutes", type=float, default=5.0, help="minutes between checkpoints (default 5)")
     parser.add_argument("--no-buffer-checkpoint", action="store_true", help="leave the replay buffer out of checkpoints")
     parser.add_argument("--seed", type=int, default=0)
@@ -153,6 +163,12 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--devices", type=int, default=None, help="data-parallel over this many local devices (default: all)")
     parser.add_argument("--json", action="store_true", help="end with one JSON line")
     return parser
+
+
+def _flag(text: str) -> bool:
+    if text not in ("0", "1"):
+        raise argparse.ArgumentTypeError(f"expected 0 or 1, got {text!r}")
+    return text == "1"
 
 
 def _alpha(text: str) -> float | str:
@@ -174,6 +190,8 @@ def _settings(args) -> dict:
         preset["expert_bc"] = 0.0
     if args.bc:  # behaviour cloning stores no policy transitions to relabel
         preset["hindsight"] = 0
+    if args.no_expert or args.bc:  # no policy transitions to sample beside (bc) / no experts (no-expert)
+        preset["expert_share"] = 0.0
     overrides = {"train_tasks": args.train_tasks, "eval_tasks": args.eval_count, "num_envs": args.num_envs,
                  "rollout_steps": args.rollout_steps, "updates_per_iteration": args.updates_per_iteration,
                  "batch_size": args.batch_size, "buffer_size": args.buffer_size, "warmup": args.warmup, "expert_replays": args.expert_replays,
@@ -181,7 +199,8 @@ def _settings(args) -> dict:
                  "arms": list(args.arms) if args.arms else None, "alpha": args.alpha, "target_entropy": args.target_entropy,
                  "gamma": args.gamma, "noise_decay": args.noise_decay, "expert_bc": args.expert_bc,
                  "hindsight": args.hindsight, "shaping": args.shaping,
-                 "policy_average": args.policy_average}
+                 "policy_average": args.policy_average, "curriculum_by_team": args.curriculum_by_team,
+                 "collisions": args.collisions, "expert_share": args.expert_share}
     preset.update({k: v for k, v in overrides.items() if v is not None})
     preset["arms"] = list(preset["arms"])
     return {
@@ -232,16 +251,18 @@ def _prepare(run_dir: pathlib.Path, settings: dict, env_config: EnvConfig, worke
             precompute(tasks_path, experts, PlannerConfig(time_limit=30.0), seed=settings["seed"], workers=workers)
         store = ExpertStore(experts)
     env = ReachingEnv(max_arms, env_config)
-    eval_env = ReachingEnv(max_arms, dataclasses.replace(env_config, tolerance=EVAL_TOLERANCE))
+    eval_env = ReachingEnv(max_arms, dataclasses.replace(env_config, tolerance=EVAL_TOLERANCE, end_on_collision=True))
     bank = TaskBank.from_tasks(tasks, max_arms)
     demos = Demonstrations.from_store(store, bank, env, settings["expert_steps"]) if store else None
     return env, eval_env, bank, TaskBank.from_tasks(eval_tasks, max_arms), demos
 
 
 def _env_config(settings: dict) -> EnvConfig:
-    """The training environment's configuration (evaluation differs only in tolerance)."""
+    """The training environment's configuration (evaluation differs in tolerance and ends every
+    episode on a collision)."""
     return EnvConfig(max_steps=settings["episode_steps"], reward=settings["reward"], shaping=settings.get("shaping", 0.0),
-                     neighbour_radius=0.0 if settings["observe"] == "self" else EnvConfig().neighbour_radius)
+                     neighbour_radius=0.0 if settings["observe"] == "self" else EnvConfig().neighbour_radius,
+                     end_on_collision=settings.get("collisions", "end") == "end")
 
 
 def _train_config(settings: dict) -> TrainConfig:
@@ -253,6 +274,7 @@ def _train_config(settings: dict) -> TrainConfig:
         batch_size=settings["batch_size"], buffer_size=settings["buffer_size"], warmup=settings["warmup"], expert=settings["expert"],
         expert_replays=settings["expert_replays"], bc=settings["bc"], curriculum=settings["curriculum"],
         noise_decay=settings.get("noise_decay", 0.0), hindsight=settings.get("hindsight", 0),
+        curriculum_by_team=settings.get("curriculum_by_team", False), expert_share=settings.get("expert_share", 0.0),
         sac=SACConfig(squash=standard, learn_alpha=learned, alpha=SACConfig.alpha if learned else alpha,
                       target_entropy=settings.get("target_entropy", SACConfig.target_entropy), gamma=settings.get("gamma", SACConfig.gamma),
                       expert_bc=settings.get("expert_bc", 0.0), policy_average=settings.get("policy_average", 0.0)),
@@ -271,7 +293,13 @@ def _plot(rows: list[dict], path: pathlib.Path) -> None:
     top.set_ylabel("success rate")
     top.set_ylim(-0.02, 1.02)
     top.legend(loc="lower right")
-    bottom.plot(steps, [r["level"] + 1 for r in rows], color="tab:orange")
+    teams = sorted(int(k[len("level_"):]) for k in rows[0] if k.startswith("level_"))
+    if teams:
+        for team in teams:
+            bottom.plot(steps, [r[f"level_{team}"] + 1 for r in rows], label=f"{team} arm{'s' if team > 1 else ''}")
+        bottom.legend(loc="upper left")
+    else:
+        bottom.plot(steps, [r["level"] + 1 for r in rows], color="tab:orange")
     bottom.set_ylabel("curriculum level")
     bottom.set_xlabel("environment steps")
     fig.suptitle("train.sac learning curve")
@@ -357,7 +385,8 @@ def main(argv=None) -> None:
 
     def save():
         meta = {"iteration": iteration, "train_seconds": elapsed, "env_steps": int(state.env_steps),
-                "updates": int(state.agent.updates), "curriculum_level": int(state.curriculum.level), "with_buffer": settings["with_buffer"]}
+                "updates": int(state.agent.updates), "curriculum_level": int(trainer.level(state.curriculum)),
+                "with_buffer": settings["with_buffer"]}
         checkpoints.save(iteration, state, meta)
         save_policy(run_dir / "policy.npz", state.agent.average_actor, trainer.config.sac.squash, policy_env_settings(env),
                     {"run_dir": str(run_dir), "settings": settings, **meta})
@@ -379,7 +408,8 @@ def main(argv=None) -> None:
                      "level": int(metrics["level"]), "window_success": float(metrics["window_success"]),
                      "episodes": int(metrics["ended"]), "successes": int(metrics["successes"]),
                      **{k: float(metrics[k]) for k in ("critic_loss", "actor_loss", "q", "entropy", "alpha", "bc_loss", "expert_bc_loss",
-                                                       "expert_bc_share") if k in metrics}})
+                                                       "expert_bc_share") if k in metrics},
+                     **{k: float(v) for k, v in metrics.items() if k.startswith(("level_", "window_success_"))}})
         now = time.perf_counter()
         if now - last_print > 2.0:
             rate = (steps - start_steps) / max(elapsed - start_elapsed, 1e-9)
@@ -405,14 +435,16 @@ def main(argv=None) -> None:
         "train_seconds": elapsed, "env_steps_per_s": env_rate, "updates_per_s": int(state.agent.updates) / max(elapsed, 1e-9),
         "success_rate": evaluation["all"]["success_rate"], "evaluation": evaluation,
         "sampled_success_rate": sampled["all"]["success_rate"],
-        "curriculum_level": int(state.curriculum.level) + 1, "checkpoint": str(checkpoints.directory / str(iteration)),
+        "curriculum_level": int(trainer.level(state.curriculum)) + 1,
+        "curriculum_levels_by_team": {int(t): int(state.curriculum.level[trainer.team_group[t - 1]]) + 1 for t in trainer.teams},
+        "checkpoint": str(checkpoints.directory / str(iteration)),
         "run_dir": str(run_dir),
     }
     summary = _json_safe(summary)
     atomic_write(run_dir / "summary.json", lambda f: f.write(json.dumps(summary, indent=2).encode()))
     for team, row in sorted(evaluation["by_team_size"].items()):
         print(f"{team} arm(s): success {row['success_rate']:.1%}  collision {row['collision_rate']:.1%}  timeout {row['timeout_rate']:.1%} "
-              f"({row['episodes']} tasks)")
+              f"arms reached {row['arm_reach_rate']:.1%} ({row['episodes']} tasks)")
     print(f"sampled actions (the training policy): success {summary['sampled_success_rate']:.1%}")
     print(f"{summary['env_steps']:,} env steps, {summary['updates']:,} updates in {elapsed / 60:.1f} min; "
           f"curriculum level {summary['curriculum_level']}; results in {run_dir}")

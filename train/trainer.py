@@ -16,6 +16,12 @@ One call of :meth:`Trainer.iteration` (compiled once) does, in the style of Brax
 5. ``updates_per_iteration`` SAC updates on uniform batches from the buffer once it holds
    ``warmup`` transitions (behaviour cloning on expert transitions only with ``bc=True``).
 
+Options beyond the paper: ``curriculum_by_team`` gives every team size its own curriculum
+level (:class:`~train.curriculum.GroupedCurriculum`); ``expert_share`` = f > 0 keeps the
+expert transitions in a buffer of their own (``expert_buffer`` rows) and draws a fixed
+fraction f of every batch from it (as RLPD's symmetric sampling), so demonstrations stay
+in the batches however many policy transitions arrive.
+
 Everything stays on device; the host only reads metrics between iterations.
 """
 
@@ -34,7 +40,7 @@ from mjx_multiarm.expert.store import ExpertStore
 from mjx_multiarm.observation import retarget
 from mjx_multiarm.wrappers import AutoReset, BatchState, TaskBank, replay_actions
 from train.agent import Agent, SACConfig, bc_update, create_agent, sac_update
-from train.curriculum import LEVELS, Curriculum
+from train.curriculum import LEVELS, GroupedCurriculum
 from train.replay import ReplayBuffer, Transitions, ring_write
 
 
@@ -56,6 +62,9 @@ class TrainConfig:
     start_level: int = 0
     noise_decay: float = 0.0  # policy std bound x (eps_p / first level's eps_p) ** noise_decay; 0: fixed
     hindsight: int = 0  # relabelled copies of each policy transition (hindsight goals); 0: none, as the original
+    curriculum_by_team: bool = False  # one curriculum level per team size; False: one for all, as the original
+    expert_share: float = 0.0  # fraction of every batch drawn from a separate expert buffer; 0: one buffer, as the original
+    expert_buffer: int = 50_000  # rows of that expert buffer
     sac: SACConfig = SACConfig()
 
     def __post_init__(self):
@@ -74,6 +83,12 @@ class TrainConfig:
             raise ValueError(f"SACConfig.expert_bc must be >= 0, got {self.sac.expert_bc}")
         if not 0 <= self.sac.policy_average <= 1:
             raise ValueError(f"SACConfig.policy_average must be in [0, 1], got {self.sac.policy_average}")
+        if not 0 <= self.expert_share < 1:
+            raise ValueError(f"TrainConfig.expert_share must be in [0, 1), got {self.expert_share}")
+        if self.expert_share and (self.bc or not self.expert):
+            raise ValueError("expert_share samples expert transitions beside the policy's: it needs expert=True and bc=False")
+        if self.expert_share and self.expert_buffer < 1:
+            raise ValueError(f"TrainConfig.expert_buffer must be >= 1, got {self.expert_buffer}")
         if self.sac.expert_bc and (self.bc or not self.expert):
             raise ValueError("expert_bc adds behaviour cloning of expert demonstrations to SAC: it needs expert=True and bc=False")
 
@@ -151,7 +166,8 @@ class TrainState:
     agent: Agent
     envs: BatchState
     buffer: ReplayBuffer
-    curriculum: Curriculum
+    expert_buffer: ReplayBuffer | None  # with TrainConfig.expert_share > 0
+    curriculum: GroupedCurriculum
     failed: FailedQueue
     rng: jax.Array
     env_steps: jnp.ndarray
@@ -221,7 +237,15 @@ class Trainer:
         for name in ("num_envs", "batch_size"):
             if getattr(config, name) % len(devices):
                 raise ValueError(f"TrainConfig.{name}={getattr(config, name)} must be divisible by the {len(devices)} devices")
+        if config.expert_share and config.expert_replays * demonstrations.max_steps * env.max_arms > config.expert_buffer:
+            raise ValueError(f"expert_buffer={config.expert_buffer} is smaller than one iteration's expert replays "
+                             f"({config.expert_replays} x {demonstrations.max_steps} steps x {env.max_arms} arms)")
         self.env, self.bank, self.demos, self.config = env, bank, demonstrations, config
+        teams = np.unique(np.asarray(bank.tasks.active.sum(axis=-1)))
+        #: Curriculum group of each team size (index k - 1), and the groups the bank's tasks use.
+        self.team_group = np.arange(env.max_arms) if config.curriculum_by_team else np.zeros(env.max_arms, np.int64)
+        self.groups_used = np.unique(self.team_group[teams - 1])
+        self.teams = teams
         self.mesh = Mesh(np.array(devices), ("data",))
         self.autoreset = AutoReset(env, bank)
         self.iteration = jax.jit(self._iteration)
@@ -239,13 +263,14 @@ class Trainer:
         """A fresh run: networks, environments at curriculum level ``start_level``, empty buffer."""
         agent_key, env_key, key = jax.random.split(key, 3)
         config = self.config
-        curriculum = Curriculum.start(config.num_envs, config.start_level)
-        tolerance = curriculum.tolerance if config.curriculum else jnp.asarray(self.env.config.tolerance, jnp.float32)
+        curriculum = GroupedCurriculum.start(config.num_envs, int(self.team_group.max()) + 1, config.start_level)
+        tolerance = self._tolerances(curriculum) if config.curriculum else jnp.asarray(self.env.config.tolerance, jnp.float32)
         envs = jax.jit(self.autoreset.reset, static_argnums=1)(env_key, config.num_envs, tolerance)
         buffer = ReplayBuffer.create(config.buffer_size, self.env.max_arms)
+        expert_buffer = ReplayBuffer.create(config.expert_buffer, self.env.max_arms) if config.expert_share else None
         zero = jnp.zeros((), jnp.int32)
-        state = TrainState(create_agent(agent_key, config.sac), envs, buffer, curriculum, FailedQueue.create(config.failed_queue),
-                           key, zero, zero)
+        state = TrainState(create_agent(agent_key, config.sac), envs, buffer, expert_buffer, curriculum,
+                           FailedQueue.create(config.failed_queue), key, zero, zero)
         return self.place(state)
 
     def _rollout(self, state: TrainState, key) -> tuple[TrainState, dict]:
@@ -265,9 +290,11 @@ class Trainer:
             if config.expert:
                 rows = stepped.task.task_id
                 failed = failed.push(ended & ~stepped.success & (self.demos.lengths[rows] > 0), rows)
-            curriculum = state.curriculum.record(ended, stepped.success) if config.curriculum else state.curriculum
+            curriculum = state.curriculum
             if config.curriculum:
-                envs = envs.replace(tolerance=curriculum.tolerance)
+                group = jnp.asarray(self.team_group)[stepped.task.active.sum(-1) - 1]
+                curriculum = curriculum.record(ended, stepped.success, group)
+                envs = envs.replace(tolerance=self._tolerances(curriculum))
             active = stepped.task.active.sum(-1)
             trajectory = (state.envs.env, actions, stepped) if config.hindsight else None
             state = state.replace(envs=envs, buffer=buffer, failed=failed, curriculum=curriculum,
@@ -283,8 +310,8 @@ class Trainer:
     def _expert_replays(self, state: TrainState) -> TrainState:
         failed, rows, valid_task = state.failed.pop(self.config.expert_replays)
         tasks = self.bank.take(rows)
-        tolerance = state.envs.tolerance
-        start = jax.vmap(lambda task: self.env.reset(None, task, tolerance))(tasks)
+        tolerance = state.envs.tolerance[tasks.active.sum(-1) - 1]
+        start = jax.vmap(lambda task, tol: self.env.reset(None, task, tol))(tasks, tolerance)
         actions, lengths = self.demos.take(rows)
         lengths = jnp.where(valid_task, lengths, 0)
         states, valid = jax.vmap(lambda s, a, n: replay_actions(self.env, s, a, n))(start, actions, lengths)
@@ -292,14 +319,37 @@ class Trainer:
         before_mask = jnp.concatenate([start.obs_mask[:, None], states.obs_mask[:, :-1]], axis=1)
         transitions, arm_valid = arm_transitions(before_obs, before_mask, actions, states, expert=True)
         arm_valid = arm_valid & jnp.repeat(valid.reshape(-1), self.env.max_arms)
-        return state.replace(buffer=state.buffer.insert(transitions, arm_valid), failed=failed,
-                             expert_steps=state.expert_steps + valid.sum().astype(jnp.int32))
+        if self.config.expert_share:
+            state = state.replace(expert_buffer=state.expert_buffer.insert(transitions, arm_valid))
+        else:
+            state = state.replace(buffer=state.buffer.insert(transitions, arm_valid))
+        return state.replace(failed=failed, expert_steps=state.expert_steps + valid.sum().astype(jnp.int32))
+
+    def _tolerances(self, curriculum: GroupedCurriculum) -> jnp.ndarray:
+        """[max_arms, 2] reset tolerances by team size at the curriculum's levels."""
+        return curriculum.tolerance[jnp.asarray(self.team_group)]
+
+    def level(self, curriculum: GroupedCurriculum) -> jnp.ndarray:
+        """The lowest level among the groups the bank's tasks use (the run's progress)."""
+        return jnp.min(curriculum.level[jnp.asarray(self.groups_used)])
 
     def std_scale(self, state: TrainState) -> jnp.ndarray:
         """The policy's noise bound at the current curriculum level (1 without a schedule)."""
         if not self.config.noise_decay:
             return jnp.ones((), jnp.float32)
-        return (state.curriculum.tolerance[0] / LEVELS[0, 0]) ** self.config.noise_decay
+        return (jnp.asarray(LEVELS)[self.level(state.curriculum), 0] / LEVELS[0, 0]) ** self.config.noise_decay
+
+    def _sample(self, state: TrainState, key) -> Transitions:
+        """A training batch: uniform from the buffer, or with ``expert_share`` that fraction
+        drawn from the expert buffer (from the main buffer while the expert buffer is empty)."""
+        config = self.config
+        if not config.expert_share:
+            return state.buffer.sample(key, config.batch_size)
+        expert_rows = round(config.expert_share * config.batch_size)
+        main_key, expert_key, fallback_key = jax.random.split(key, 3)
+        expert = jax.lax.cond(state.expert_buffer.size > 0, lambda: state.expert_buffer.sample(expert_key, expert_rows),
+                              lambda: state.buffer.sample(fallback_key, expert_rows))
+        return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), state.buffer.sample(main_key, config.batch_size - expert_rows), expert)
 
     def _updates(self, state: TrainState, key) -> tuple[TrainState, dict]:
         config = self.config
@@ -307,7 +357,7 @@ class Trainer:
 
         def update(agent, update_key):
             sample_key, sac_key = jax.random.split(update_key)
-            batch = state.buffer.sample(sample_key, config.batch_size)
+            batch = self._sample(state, sample_key)
             batch = jax.lax.with_sharding_constraint(batch, NamedSharding(self.mesh, PartitionSpec("data")))
             if config.bc:
                 return bc_update(agent, batch, config.sac)
@@ -329,5 +379,11 @@ class Trainer:
             state = self._expert_replays(state)
         state, learning = self._updates(state, update_key)
         state = jax.lax.with_sharding_constraint(state, self._shardings(state))
-        return state, {**rollout, **learning, "level": state.curriculum.level, "window_success": state.curriculum.success_rate,
+        groups = jnp.asarray(self.groups_used)
+        per_team = {}
+        if self.config.curriculum_by_team:
+            per_team = {name: value for team in self.teams for name, value in
+                        ((f"level_{team}", state.curriculum.level[team - 1]), (f"window_success_{team}", state.curriculum.success_rate[team - 1]))}
+        return state, {**rollout, **learning, "level": self.level(state.curriculum),
+                       "window_success": jnp.mean(state.curriculum.success_rate[groups]), **per_team,
                        "buffer": state.buffer.size, "queued_failures": state.failed.count}
