@@ -34,6 +34,10 @@ ELEMENT_SIZE = 107
 #: Slices of an element: end-effector pose at t; target poses at t-1 and t.
 EE_POSE = slice(19, 26)
 TARGET_POSE_PREV, TARGET_POSE = slice(26, 33), slice(33, 40)
+#: The element's five quaternions (end effector and target at t-1 and t, base).
+QUATERNIONS = (slice(15, 19), slice(22, 26), slice(29, 33), slice(36, 40), slice(103, 107))
+#: Size of an element whose quaternions are replaced by rotation-matrix columns.
+ROTATION_ELEMENT_SIZE = ELEMENT_SIZE + 2 * len(QUATERNIONS)
 #: Default neighbour radius (m): two workspace radii, as in the original code.
 NEIGHBOUR_RADIUS = 1.7
 
@@ -100,6 +104,19 @@ def observe(base_pos, base_quat, active, prev: ArmSnapshot, now: ArmSnapshot, ra
     obs = jnp.take_along_axis(elements, order[..., None], axis=-2)
     mask = jnp.take_along_axis(seen, order, axis=-1)
     return jnp.where(mask[..., None], obs, 0.0), mask
+
+
+def rotation_features(obs):
+    """Elements [..., 107] with each quaternion replaced by the first two columns of its
+    rotation matrix: [..., 117]. Unlike a sign-canonical quaternion, which flips all four
+    components when an orientation crosses w = 0, these six numbers are continuous in the
+    orientation (Zhou et al. 2019), and the same for q and -q."""
+    parts, start = [], 0
+    for quat in QUATERNIONS:
+        columns = quat_to_mat(obs[..., quat])[..., :, :2]
+        parts += [obs[..., start : quat.start], jnp.swapaxes(columns, -1, -2).reshape(*obs.shape[:-1], 6)]
+        start = quat.stop
+    return jnp.concatenate([*parts, obs[..., start:]], axis=-1)
 
 
 def retarget(obs, goal_obs):

@@ -68,3 +68,35 @@ def test_noise_schedule_shrinks_the_standard_deviation_bound():
     z = (np.asarray(action) - np.asarray(mean)) / np.exp(np.asarray(narrow_log_std))
     expected = (-0.5 * z**2 - np.asarray(narrow_log_std) - 0.5 * math.log(2 * math.pi)).sum(-1)
     np.testing.assert_allclose(log_prob, expected, rtol=1e-4, atol=1e-3)
+
+
+def test_rotation_features_are_continuous_and_blind_to_the_quaternion_sign():
+    """Each quaternion of an element becomes the first two columns of its rotation matrix:
+    q and -q give the same features (a sign-canonical quaternion flips at w = 0), every
+    other component passes through in order, and the actor accepts the 107-D elements."""
+    from mjx_multiarm.observation import QUATERNIONS, ROTATION_ELEMENT_SIZE, rotation_features
+    from mjx_multiarm.transforms import quat_to_mat
+
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(6, 3, 107)).astype(np.float32)
+    for quat in QUATERNIONS:
+        q = rng.normal(size=(6, 3, 4))
+        obs[..., quat] = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    flipped = obs.copy()
+    for quat in QUATERNIONS:
+        flipped[..., quat] *= -1
+    features = np.asarray(rotation_features(jnp.asarray(obs)))
+    assert features.shape == (6, 3, ROTATION_ELEMENT_SIZE)
+    np.testing.assert_allclose(np.asarray(rotation_features(jnp.asarray(flipped))), features, atol=1e-6)
+    kept = np.ones(107, bool)
+    for quat in QUATERNIONS:
+        kept[quat] = False
+    first = QUATERNIONS[0]
+    columns = np.asarray(quat_to_mat(jnp.asarray(obs[..., first])))[..., :, :2]
+    np.testing.assert_allclose(features[..., first.start : first.start + 6], np.swapaxes(columns, -1, -2).reshape(6, 3, 6), atol=1e-6)
+    passthrough = np.ones(ROTATION_ELEMENT_SIZE, bool)
+    for i, quat in enumerate(QUATERNIONS):
+        passthrough[quat.start + 2 * i : quat.start + 2 * i + 6] = False
+    np.testing.assert_array_equal(features[..., passthrough], obs[..., kept])
+    mean, _ = Actor(nnx.Rngs(0), rotations=True)(jnp.asarray(obs), jnp.ones((6, 3), bool))
+    assert mean.shape == (6, 6) and np.isfinite(np.asarray(mean)).all()

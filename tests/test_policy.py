@@ -34,6 +34,22 @@ def test_round_trip_gives_the_same_actor(policy_path):
     assert loaded.meta["provenance"] == {"note": "random weights"} and not loaded.squash
 
 
+def test_round_trip_of_a_rotation_feature_actor(tmp_path):
+    """An actor that sees rotation-matrix columns comes back as one (the flag is in the
+    file), and a quaternion actor's file is not read as one."""
+    path = tmp_path / "rotations.npz"
+    original = Actor(nnx.Rngs(4), rotations=True)
+    save_policy(path, nnx.state(original), False, policy_env_settings(ReachingEnv(2)), rotations=True)
+    loaded = load_policy(path)
+    obs = np.random.default_rng(1).normal(size=(4, 2, 107)).astype(np.float32)
+    mask = np.ones((4, 2), bool)
+    assert loaded.meta["rotations"] and loaded.actor.encoder.rotations
+    np.testing.assert_array_equal(np.asarray(loaded.actor(obs, mask)[0]), np.asarray(original(obs, mask)[0]))
+    save_policy(tmp_path / "mislabelled.npz", nnx.state(Actor(nnx.Rngs(4))), False, {}, rotations=True)
+    with pytest.raises(ValueError, match="another architecture"):
+        load_policy(tmp_path / "mislabelled.npz")
+
+
 def test_bad_policy_files_fail_clearly(policy_path, tmp_path):
     with pytest.raises(FileNotFoundError, match="no such policy file"):
         load_policy(tmp_path / "missing.npz")

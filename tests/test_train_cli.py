@@ -52,6 +52,28 @@ def test_cli_runs_end_to_end_and_resumes_exactly(tmp_path, capsys):
         sac.main(["--resume", str(tmp_path / "nowhere")])
 
 
+def test_team_options_and_a_task_file_subset(tmp_path, capsys):
+    """The team options end to end: per-team curriculum levels in metrics and summary,
+    rotation features in the exported policy; --train-tasks N of a task file without an
+    expert file plans the experts of those N tasks only."""
+    from mjx_multiarm.expert.store import ExpertStore
+    from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
+    from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
+
+    save_tasks(tmp_path / "many.npz", generate_chunk(GenerationSpec(count=12, arm_counts=(1, 2), mode="static", seed=4, max_arms=2), 0))
+    run = tmp_path / "team"
+    sac.main(["--preset", "tiny", "--run-dir", str(run), "--workers", "1", "--steps", "64", "--tasks", str(tmp_path / "many.npz"),
+              "--train-tasks", "6", "--curriculum-by-team", "1", "--collisions", "restore", "--expert-share", "0.25",
+              "--rotations", "1", "--json"])
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert load_tasks(run / "tasks.npz")[0].num_tasks == 6 and len(ExpertStore(run / "tasks.experts").task_ids) == 6
+    assert set(summary["curriculum_levels_by_team"]) == {"1", "2"}
+    header = (run / "metrics.csv").read_text().splitlines()[0].split(",")
+    assert {"level_1", "level_2", "window_success_1", "window_success_2"} <= set(header)
+    assert load_policy(run / "policy.npz").meta["rotations"]
+    assert set(summary["evaluation"]["by_team_size"]["1"]) >= {"arm_reach_rate", "collision_rate", "timeout_rate"}
+
+
 @pytest.mark.parametrize("flags, expert_bc, hindsight", [
     ([], 1.0, 1),
     (["--no-expert"], 0.0, 1),
@@ -76,6 +98,8 @@ def test_preset_additions_give_way_to_the_ablations(flags, expert_bc, hindsight)
     (["--policy-average", "-0.5"], r"policy_average must be in \[0, 1\]"),
     (["--shaping", "-0.5"], "shaping must be >= 0"),
     (["--episode-steps", "0"], "max_steps must be >= 1"),
+    (["--expert-share", "1.5"], r"expert_share must be in \[0, 1\)"),
+    (["--expert-share", "0.25", "--no-expert"], "expert_share samples expert transitions"),
 ])
 def test_inconsistent_flags_fail_before_the_run_starts(tmp_path, flags, message):
     """The training and environment configurations' checks run before the run directory, tasks or experts exist."""

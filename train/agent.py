@@ -43,6 +43,7 @@ class SACConfig:
     bc_lr: float = 1e-3  # behaviour-cloning ablation
     expert_bc: float = 0.0  # weight of the Q-filtered expert behaviour-cloning term of the actor loss (0: the original)
     policy_average: float = 0.0  # Polyak rate of the deployed average actor per update (0: the latest actor, as the original)
+    rotations: bool = False  # networks see orientations as rotation-matrix columns (False: quaternions, as the original)
 
 
 @struct.dataclass
@@ -81,8 +82,8 @@ def _optimizers(config: SACConfig):
 def create_agent(key, config: SACConfig = SACConfig()) -> Agent:
     """Freshly initialized networks (weights as the original) and optimizers."""
     actor_key, critic_key = jax.random.split(key)
-    actor_def, actor = nnx.split(Actor(nnx.Rngs(actor_key), squash=config.squash))
-    critic_def, critic = nnx.split(TwinCritic(nnx.Rngs(critic_key)))
+    actor_def, actor = nnx.split(Actor(nnx.Rngs(actor_key), squash=config.squash, rotations=config.rotations))
+    critic_def, critic = nnx.split(TwinCritic(nnx.Rngs(critic_key), rotations=config.rotations))
     actor_opt, critic_opt, alpha_opt = _optimizers(config)
     log_alpha = jnp.asarray(math.log(config.alpha), jnp.float32)
     return Agent(actor, actor, critic, critic, actor_opt.init(actor), critic_opt.init(critic), log_alpha,

@@ -92,6 +92,7 @@ class Preset:
     curriculum_by_team: bool = False  # one curriculum level per team size (TrainConfig.curriculum_by_team)
     collisions: str = "end"  # training collisions: "end" the episode (the paper) or "restore" the arm (EnvConfig.end_on_collision)
     expert_share: float = 0.0  # fraction of each batch from a separate expert buffer (TrainConfig.expert_share)
+    rotations: bool = False  # orientations enter the networks as rotation-matrix columns (SACConfig.rotations)
 
 
 PRESETS = {
@@ -154,6 +155,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--collisions", choices=["end", "restore"], help="during training, a collision ends the episode "
                         "(the original) or puts the colliding arms back with the collision penalty and goes on "
                         "(default: the preset's; evaluation always ends it)")
+    parser.add_argument("--rotations", type=_flag, help="1: the networks see every orientation as two rotation-matrix "
+                        "columns (continuous) instead of a sign-canonical quaternion (0, the original; default: the preset's)")
     parser.add_argument("--expert-share", type=float, help="draw this fraction of every batch from a separate buffer of "
                         "expert transitions (default: the preset's; 0 = one buffer for all, the original)")
     parser.add_argument("--checkpoint-minutes", type=float, default=5.0, help="minutes between checkpoints (default 5)")
@@ -200,7 +203,7 @@ def _settings(args) -> dict:
                  "gamma": args.gamma, "noise_decay": args.noise_decay, "expert_bc": args.expert_bc,
                  "hindsight": args.hindsight, "shaping": args.shaping,
                  "policy_average": args.policy_average, "curriculum_by_team": args.curriculum_by_team,
-                 "collisions": args.collisions, "expert_share": args.expert_share}
+                 "collisions": args.collisions, "expert_share": args.expert_share, "rotations": args.rotations}
     preset.update({k: v for k, v in overrides.items() if v is not None})
     preset["arms"] = list(preset["arms"])
     return {
@@ -233,6 +236,10 @@ def _prepare(run_dir: pathlib.Path, settings: dict, env_config: EnvConfig, worke
         tasks_path = pathlib.Path(settings["tasks"])
         if settings.get("task_limit"):  # --train-tasks N with --tasks: the file's first N tasks
             tasks = take(tasks, slice(0, settings["task_limit"]))
+            if settings["expert"] and not settings["experts"]:  # experts to plan: those of the subset only
+                tasks_path = run_dir / "tasks.npz"
+                if not tasks_path.exists():
+                    save_tasks(tasks_path, tasks, {"subset_of": settings["tasks"], "first": settings["task_limit"]})
     else:
         tasks_path = run_dir / "tasks.npz"
         log(f"generating {settings['train_tasks']} training tasks ({','.join(map(str, arms))} arms)...")
@@ -277,7 +284,8 @@ def _train_config(settings: dict) -> TrainConfig:
         curriculum_by_team=settings.get("curriculum_by_team", False), expert_share=settings.get("expert_share", 0.0),
         sac=SACConfig(squash=standard, learn_alpha=learned, alpha=SACConfig.alpha if learned else alpha,
                       target_entropy=settings.get("target_entropy", SACConfig.target_entropy), gamma=settings.get("gamma", SACConfig.gamma),
-                      expert_bc=settings.get("expert_bc", 0.0), policy_average=settings.get("policy_average", 0.0)),
+                      expert_bc=settings.get("expert_bc", 0.0), policy_average=settings.get("policy_average", 0.0),
+                      rotations=settings.get("rotations", False)),
     )
 
 
@@ -389,7 +397,7 @@ def main(argv=None) -> None:
                 "with_buffer": settings["with_buffer"]}
         checkpoints.save(iteration, state, meta)
         save_policy(run_dir / "policy.npz", state.agent.average_actor, trainer.config.sac.squash, policy_env_settings(env),
-                    {"run_dir": str(run_dir), "settings": settings, **meta})
+                    {"run_dir": str(run_dir), "settings": settings, **meta}, rotations=trainer.config.sac.rotations)
         header = list(rows[0]) if rows else []
         atomic_write(metrics_file, lambda f: f.write((",".join(header) + "\n" + "".join(",".join(str(r[k]) for k in header) + "\n" for r in rows)).encode()))
 
