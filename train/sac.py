@@ -29,6 +29,13 @@ data only; both drop the preset's expert term), ``--reward selfish``, ``--observ
 (individualistic observations).
 ``--sac standard`` uses tanh-squashed samples and a learned temperature instead of the
 original's bounded-variance Gaussian with fixed temperature 0.001.
+
+Options for teams (each off in ``paper`` and ``cpu``; measured in benchmarks/RESULTS.md,
+"Teams: ablation ladder"): ``--curriculum-by-team 1`` (a curriculum level per team size),
+``--collisions restore`` (a training collision puts the colliding arms back, penalized, and
+the episode goes on; evaluation always ends it), ``--expert-share F`` (a fraction F of
+every batch from a separate buffer of expert transitions), ``--rotations 1`` (orientations
+enter the networks as rotation-matrix columns).
 """
 
 from __future__ import annotations
