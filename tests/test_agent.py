@@ -54,6 +54,15 @@ def test_one_sac_update_lowers_the_critic_loss_on_a_fixed_batch():
         np.testing.assert_allclose(got, want, atol=1e-6)
 
 
+def _assert_same_step(before, after, step):
+    """``after`` - ``before`` is the optimizer ``step`` up to float32 rounding (Adam's first
+    step divides each gradient by its own magnitude, so near-zero gradients round freely:
+    compared over all parameters at once)."""
+    flat = lambda tree: np.concatenate([np.ravel(x) for x in jax.tree.leaves(tree)])  # noqa: E731
+    taken, wanted = flat(after) - flat(before), flat(step)
+    assert np.linalg.norm(taken - wanted) < 1e-3 * np.linalg.norm(wanted)
+
+
 def test_actor_update_reusing_the_critic_encodings_equals_the_full_actor_loss():
     """The actor loss values its actions with the critics' encodings of the batch from the
     critic loss: the loss and the actor's step equal those of the textbook actor loss that
@@ -74,8 +83,34 @@ def test_actor_update_reusing_the_critic_encodings_equals_the_full_actor_loss():
     loss, grads = jax.jit(jax.value_and_grad(textbook))(agent.actor)
     np.testing.assert_allclose(metrics["actor_loss"], loss, rtol=1e-6)
     step, _ = optax.adam(SACConfig().actor_lr).update(grads, agent.actor_opt, agent.actor)
-    for got, want in zip(jax.tree.leaves(updated.actor), jax.tree.leaves(optax.apply_updates(agent.actor, step))):
-        np.testing.assert_allclose(got, want, atol=1e-6)  # float32 rounding; a step is 5e-4
+    _assert_same_step(agent.actor, updated.actor, step)
+
+
+def test_behaviour_cloned_start_then_sac():
+    """bc_start = 1: the first update's actor step is a behaviour-cloning step on the batch's
+    expert rows (the critics take their usual step); the second is SAC's."""
+    import optax
+
+    config = SACConfig(bc_start=1)
+    agent = create_agent(jax.random.key(0), config)
+    batch = _batch(jax.random.key(1), 64)
+
+    def cloning(params):
+        mean, _ = nnx.merge(agent.actor_def, params).distribution(batch.obs, batch.mask)
+        error = jnp.sum((mean - batch.action) ** 2, axis=-1)
+        return jnp.sum(jnp.where(batch.expert, error, 0.0)) / batch.expert.sum()
+
+    first, metrics = jax.jit(sac_update, static_argnums=3)(agent, batch, jax.random.key(2), config)
+    loss, grads = jax.value_and_grad(cloning)(agent.actor)
+    np.testing.assert_allclose(metrics["actor_loss"], loss, rtol=1e-6)
+    step, _ = optax.adam(config.actor_lr).update(grads, agent.actor_opt, agent.actor)
+    _assert_same_step(agent.actor, first.actor, step)
+    plain, _ = jax.jit(sac_update)(agent, batch, jax.random.key(2))
+    for got, want in zip(jax.tree.leaves(first.critic), jax.tree.leaves(plain.critic)):
+        np.testing.assert_allclose(got, want, atol=1e-6)  # the critics' step is SAC's
+    _, later = jax.jit(sac_update, static_argnums=3)(first, batch, jax.random.key(3), config)
+    _, reference = jax.jit(sac_update)(first, batch, jax.random.key(3))
+    np.testing.assert_allclose(later["actor_loss"], reference["actor_loss"], rtol=1e-6)
 
 
 def test_learned_temperature_and_behaviour_cloning():

@@ -100,6 +100,8 @@ def test_preset_additions_give_way_to_the_ablations(flags, expert_bc, hindsight)
     (["--episode-steps", "0"], "max_steps must be >= 1"),
     (["--expert-share", "1.5"], r"expert_share must be in \[0, 1\)"),
     (["--expert-share", "0.25", "--no-expert"], "expert_share samples expert transitions"),
+    (["--bc-start", "100", "--no-expert"], "bc_start clones expert transitions"),
+    (["--bc-start", "-1"], "bc_start must be >= 0"),
 ])
 def test_inconsistent_flags_fail_before_the_run_starts(tmp_path, flags, message):
     """The training and environment configurations' checks run before the run directory, tasks or experts exist."""

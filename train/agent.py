@@ -7,7 +7,10 @@ function. The original's choices are the default: fixed entropy temperature 0.00
 bounded-variance Gaussian without tanh squashing; ``squash=True, learn_alpha=True`` gives
 standard SAC (tanh-squashed samples, temperature tuned to a target entropy of -6).
 ``expert_bc > 0`` adds a Q-filtered behaviour-cloning term on the buffer's expert
-transitions to the actor loss (:func:`expert_bc_loss`). ``policy_average > 0`` keeps a Polyak
+transitions to the actor loss (:func:`expert_bc_loss`). ``bc_start`` = N > 0 gives a
+behaviour-cloned start: for the first N updates the actor step regresses the mean action
+onto the batch's expert actions (the critics learn as usual meanwhile, so SAC takes over
+from a cloned actor with a critic of it). ``policy_average > 0`` keeps a Polyak
 average of the actor's parameters (``Agent.average_actor``), the policy that evaluation and
 exported policy files use; 0 deploys the latest actor, as the original.
 """
@@ -44,6 +47,7 @@ class SACConfig:
     expert_bc: float = 0.0  # weight of the Q-filtered expert behaviour-cloning term of the actor loss (0: the original)
     policy_average: float = 0.0  # Polyak rate of the deployed average actor per update (0: the latest actor, as the original)
     rotations: bool = False  # networks see orientations as rotation-matrix columns (False: quaternions, as the original)
+    bc_start: int = 0  # the first updates clone the batch's expert actions instead of the SAC actor step (0: none)
 
 
 @struct.dataclass
@@ -141,7 +145,12 @@ def sac_update(agent: Agent, batch: Transitions, key, config: SACConfig = SACCon
         bc, bc_share = jnp.zeros(()), jnp.zeros(())
         if config.expert_bc:
             bc, bc_share = expert_bc_loss(actor.sample(mean, log_std)[0], batch, jnp.minimum(q1, q2), q)
-        return loss + config.expert_bc * bc, (log_prob, bc, bc_share)
+        loss = loss + config.expert_bc * bc
+        if config.bc_start:  # behaviour-cloned start: imitate the batch's expert rows
+            error = jnp.sum((actor.sample(mean, log_std)[0] - batch.action) ** 2, axis=-1)
+            cloning = jnp.sum(jnp.where(batch.expert, error, 0.0)) / jnp.maximum(batch.expert.sum(), 1)
+            loss = jnp.where(agent.updates < config.bc_start, cloning, loss)
+        return loss, (log_prob, bc, bc_share)
 
     (a_loss, (log_prob, bc, bc_share)), a_grads = jax.value_and_grad(actor_loss, has_aux=True)(agent.actor)
     actor_opt, critic_opt, alpha_opt = _optimizers(config)

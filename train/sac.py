@@ -35,7 +35,8 @@ Options for teams (each off in ``paper`` and ``cpu``; measured in benchmarks/RES
 ``--collisions restore`` (a training collision puts the colliding arms back, penalized, and
 the episode goes on; evaluation always ends it), ``--expert-share F`` (a fraction F of
 every batch from a separate buffer of expert transitions), ``--rotations 1`` (orientations
-enter the networks as rotation-matrix columns).
+enter the networks as rotation-matrix columns), ``--bc-start N`` (the first N updates clone
+the expert transitions of each batch, then SAC).
 """
 
 from __future__ import annotations
@@ -60,8 +61,8 @@ from mjx_multiarm.expert.store import ExpertStore
 from mjx_multiarm.policy import policy_env_settings
 from mjx_multiarm.tasks.__main__ import parse_arms
 from mjx_multiarm.tasks.dataset import atomic_write, load_tasks, save_tasks
-from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
-from mjx_multiarm.tasks.types import concatenate, take
+from mjx_multiarm.tasks.generate import GenerationSpec, generate_dataset
+from mjx_multiarm.tasks.types import take
 from mjx_multiarm.wrappers import TaskBank
 from train.agent import SACConfig
 from train.checkpoint import Checkpoints
@@ -100,6 +101,7 @@ class Preset:
     collisions: str = "end"  # training collisions: "end" the episode (the paper) or "restore" the arm (EnvConfig.end_on_collision)
     expert_share: float = 0.0  # fraction of each batch from a separate expert buffer (TrainConfig.expert_share)
     rotations: bool = False  # orientations enter the networks as rotation-matrix columns (SACConfig.rotations)
+    bc_start: int = 0  # updates of behaviour-cloned start before SAC's actor step (SACConfig.bc_start)
 
 
 PRESETS = {
@@ -164,6 +166,8 @@ def _parser() -> argparse.ArgumentParser:
                         "(default: the preset's; evaluation always ends it)")
     parser.add_argument("--rotations", type=_flag, help="1: the networks see every orientation as two rotation-matrix "
                         "columns (continuous) instead of a sign-canonical quaternion (0, the original; default: the preset's)")
+    parser.add_argument("--bc-start", type=int, help="the first N updates train the actor by cloning the batch's expert "
+                        "transitions (the critics learn meanwhile), then SAC takes over (default: the preset's; 0 = none)")
     parser.add_argument("--expert-share", type=float, help="draw this fraction of every batch from a separate buffer of "
                         "expert transitions (default: the preset's; 0 = one buffer for all, the original)")
     parser.add_argument("--checkpoint-minutes", type=float, default=5.0, help="minutes between checkpoints (default 5)")
@@ -201,7 +205,7 @@ def _settings(args) -> dict:
     if args.bc:  # behaviour cloning stores no policy transitions to relabel
         preset["hindsight"] = 0
     if args.no_expert or args.bc:  # no policy transitions to sample beside (bc) / no experts (no-expert)
-        preset["expert_share"] = 0.0
+        preset["expert_share"], preset["bc_start"] = 0.0, 0
     overrides = {"train_tasks": args.train_tasks, "eval_tasks": args.eval_count, "num_envs": args.num_envs,
                  "rollout_steps": args.rollout_steps, "updates_per_iteration": args.updates_per_iteration,
                  "batch_size": args.batch_size, "buffer_size": args.buffer_size, "warmup": args.warmup, "expert_replays": args.expert_replays,
@@ -210,7 +214,8 @@ def _settings(args) -> dict:
                  "gamma": args.gamma, "noise_decay": args.noise_decay, "expert_bc": args.expert_bc,
                  "hindsight": args.hindsight, "shaping": args.shaping,
                  "policy_average": args.policy_average, "curriculum_by_team": args.curriculum_by_team,
-                 "collisions": args.collisions, "expert_share": args.expert_share, "rotations": args.rotations}
+                 "collisions": args.collisions, "expert_share": args.expert_share, "rotations": args.rotations,
+                 "bc_start": args.bc_start}
     preset.update({k: v for k, v in overrides.items() if v is not None})
     preset["arms"] = list(preset["arms"])
     return {
@@ -227,11 +232,11 @@ def _megabytes(tree) -> str:
     return f"{sum(x.nbytes for x in jax.tree.leaves(tree)) / 1e6:.1f} MB"
 
 
-def _generated_tasks(path: pathlib.Path, arms, count: int, seed: int):
+def _generated_tasks(path: pathlib.Path, arms, count: int, seed: int, workers: int):
+    """The run's generated tasks at ``path`` (made resumably in ``workers`` processes if absent)."""
     if not path.exists():
         spec = GenerationSpec(count=count, arm_counts=tuple(arms), mode="static", seed=seed, max_arms=max(arms), chunk_size=256)
-        chunks = [generate_chunk(spec, c) for c in range(spec.num_chunks)]
-        save_tasks(path, concatenate(chunks), {"generated_for": "train.sac", "seed": seed})
+        generate_dataset(spec, path, workers=min(workers, spec.num_chunks))
     return load_tasks(path)[0]
 
 
@@ -250,12 +255,12 @@ def _prepare(run_dir: pathlib.Path, settings: dict, env_config: EnvConfig, worke
     else:
         tasks_path = run_dir / "tasks.npz"
         log(f"generating {settings['train_tasks']} training tasks ({','.join(map(str, arms))} arms)...")
-        tasks = _generated_tasks(tasks_path, arms, settings["train_tasks"], settings["seed"])
+        tasks = _generated_tasks(tasks_path, arms, settings["train_tasks"], settings["seed"], workers)
     if settings["eval_tasks_file"]:
         eval_tasks = load_tasks(settings["eval_tasks_file"])[0]
     else:
         eval_tasks = _generated_tasks(run_dir / "eval_tasks.npz", sorted(set(tasks.num_arms.tolist())), settings["eval_tasks"],
-                                      settings["seed"] + 10_000)
+                                      settings["seed"] + 10_000, workers)
     max_arms = max(int(tasks.num_arms.max()), int(eval_tasks.num_arms.max()))
     store = None
     if settings["expert"]:
@@ -292,7 +297,7 @@ def _train_config(settings: dict) -> TrainConfig:
         sac=SACConfig(squash=standard, learn_alpha=learned, alpha=SACConfig.alpha if learned else alpha,
                       target_entropy=settings.get("target_entropy", SACConfig.target_entropy), gamma=settings.get("gamma", SACConfig.gamma),
                       expert_bc=settings.get("expert_bc", 0.0), policy_average=settings.get("policy_average", 0.0),
-                      rotations=settings.get("rotations", False)),
+                      rotations=settings.get("rotations", False), bc_start=settings.get("bc_start", 0)),
     )
 
 

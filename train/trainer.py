@@ -89,6 +89,10 @@ class TrainConfig:
             raise ValueError("expert_share samples expert transitions beside the policy's: it needs expert=True and bc=False")
         if self.expert_share and self.expert_buffer < 1:
             raise ValueError(f"TrainConfig.expert_buffer must be >= 1, got {self.expert_buffer}")
+        if self.sac.bc_start and (self.bc or not self.expert):
+            raise ValueError("bc_start clones expert transitions before SAC: it needs expert=True and bc=False")
+        if self.sac.bc_start < 0:
+            raise ValueError(f"SACConfig.bc_start must be >= 0, got {self.sac.bc_start}")
         if self.sac.expert_bc and (self.bc or not self.expert):
             raise ValueError("expert_bc adds behaviour cloning of expert demonstrations to SAC: it needs expert=True and bc=False")
 
