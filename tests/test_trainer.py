@@ -207,3 +207,18 @@ def test_curriculum_by_team_resets_each_team_size_at_its_own_level(generated):
     assert set(teams.tolist()) == {1, 2}
     np.testing.assert_allclose(np.asarray(envs.env.tolerance), LEVELS[np.where(teams == 1, 5, 2)])
     assert int(trainer.level(curriculum)) == 2
+
+
+def test_prefill_replays_distinct_experts_into_the_expert_buffer(one_arm):
+    """prefill(3) replays the experts of 3 different tasks: their steps (one arm each) enter
+    the expert buffer of expert_share (the main buffer without it); more than the bank's
+    experts fail clearly."""
+    tasks, store = one_arm
+    for share, buffer in ((0.25, "expert_buffer"), (0.0, "buffer")):
+        trainer = _trainer(tasks, store, (1e-4, 1e-4), expert_share=share, expert_buffer=512)
+        state = trainer.prefill(trainer.init(jax.random.key(0)), 3, seed=1, chunk=2)
+        filled = getattr(state, buffer)
+        assert int(filled.inserted) == int(state.expert_steps) and np.asarray(filled.data.expert[: int(filled.size)]).all()
+        assert np.asarray(trainer.demos.lengths).min() >= 4 and int(state.expert_steps) == 3 * 4  # cut at the 4-step episodes
+    with pytest.raises(ValueError, match="cannot prefill 5"):
+        trainer.prefill(trainer.init(jax.random.key(0)), 5)

@@ -36,7 +36,8 @@ Options for teams (each off in ``paper`` and ``cpu``; measured in benchmarks/RES
 the episode goes on; evaluation always ends it), ``--expert-share F`` (a fraction F of
 every batch from a separate buffer of expert transitions), ``--rotations 1`` (orientations
 enter the networks as rotation-matrix columns), ``--bc-start N`` (the first N updates clone
-the expert transitions of each batch, then SAC).
+the expert transitions of each batch, then SAC), ``--expert-prefill M`` (the experts of M
+training tasks replayed into the buffer before the first iteration).
 """
 
 from __future__ import annotations
@@ -102,6 +103,8 @@ class Preset:
     expert_share: float = 0.0  # fraction of each batch from a separate expert buffer (TrainConfig.expert_share)
     rotations: bool = False  # orientations enter the networks as rotation-matrix columns (SACConfig.rotations)
     bc_start: int = 0  # updates of behaviour-cloned start before SAC's actor step (SACConfig.bc_start)
+    expert_prefill: int = 0  # expert demonstrations replayed into the buffer before training (Trainer.prefill)
+    expert_buffer: int = 50_000  # rows of the separate expert buffer (TrainConfig.expert_buffer)
 
 
 PRESETS = {
@@ -168,6 +171,10 @@ def _parser() -> argparse.ArgumentParser:
                         "columns (continuous) instead of a sign-canonical quaternion (0, the original; default: the preset's)")
     parser.add_argument("--bc-start", type=int, help="the first N updates train the actor by cloning the batch's expert "
                         "transitions (the critics learn meanwhile), then SAC takes over (default: the preset's; 0 = none)")
+    parser.add_argument("--expert-prefill", type=int, help="replay the experts of this many random training tasks into "
+                        "the buffer before the first iteration (default: the preset's; 0 = none, as the original)")
+    parser.add_argument("--expert-buffer-size", dest="expert_buffer", type=int, help="rows of the expert buffer of "
+                        "--expert-share (default: the preset's)")
     parser.add_argument("--expert-share", type=float, help="draw this fraction of every batch from a separate buffer of "
                         "expert transitions (default: the preset's; 0 = one buffer for all, the original)")
     parser.add_argument("--checkpoint-minutes", type=float, default=5.0, help="minutes between checkpoints (default 5)")
@@ -205,7 +212,7 @@ def _settings(args) -> dict:
     if args.bc:  # behaviour cloning stores no policy transitions to relabel
         preset["hindsight"] = 0
     if args.no_expert or args.bc:  # no policy transitions to sample beside (bc) / no experts (no-expert)
-        preset["expert_share"], preset["bc_start"] = 0.0, 0
+        preset["expert_share"], preset["bc_start"], preset["expert_prefill"] = 0.0, 0, 0
     overrides = {"train_tasks": args.train_tasks, "eval_tasks": args.eval_count, "num_envs": args.num_envs,
                  "rollout_steps": args.rollout_steps, "updates_per_iteration": args.updates_per_iteration,
                  "batch_size": args.batch_size, "buffer_size": args.buffer_size, "warmup": args.warmup, "expert_replays": args.expert_replays,
@@ -215,7 +222,7 @@ def _settings(args) -> dict:
                  "hindsight": args.hindsight, "shaping": args.shaping,
                  "policy_average": args.policy_average, "curriculum_by_team": args.curriculum_by_team,
                  "collisions": args.collisions, "expert_share": args.expert_share, "rotations": args.rotations,
-                 "bc_start": args.bc_start}
+                 "bc_start": args.bc_start, "expert_prefill": args.expert_prefill, "expert_buffer": args.expert_buffer}
     preset.update({k: v for k, v in overrides.items() if v is not None})
     preset["arms"] = list(preset["arms"])
     return {
@@ -294,6 +301,7 @@ def _train_config(settings: dict) -> TrainConfig:
         expert_replays=settings["expert_replays"], bc=settings["bc"], curriculum=settings["curriculum"],
         noise_decay=settings.get("noise_decay", 0.0), hindsight=settings.get("hindsight", 0),
         curriculum_by_team=settings.get("curriculum_by_team", False), expert_share=settings.get("expert_share", 0.0),
+        expert_buffer=settings.get("expert_buffer", TrainConfig.expert_buffer),
         sac=SACConfig(squash=standard, learn_alpha=learned, alpha=SACConfig.alpha if learned else alpha,
                       target_entropy=settings.get("target_entropy", SACConfig.target_entropy), gamma=settings.get("gamma", SACConfig.gamma),
                       expert_bc=settings.get("expert_bc", 0.0), policy_average=settings.get("policy_average", 0.0),
@@ -386,6 +394,12 @@ def main(argv=None) -> None:
     _log(f"device memory: task bank {_megabytes(bank)} ({bank.size} tasks), demonstrations {_megabytes(demos)}, "
          f"replay buffer {_megabytes(state.buffer)}, evaluation tasks {_megabytes(eval_bank)}")
     elapsed, iteration = 0.0, 0
+    if settings.get("expert_prefill") and not args.resume:
+        _log(f"replaying {settings['expert_prefill']} expert demonstrations into the buffer...")
+        try:
+            state = trainer.prefill(state, settings["expert_prefill"], settings["seed"])
+        except ValueError as error:
+            sys.exit(f"error: {error}")
     if args.resume:
         try:
             state, meta = checkpoints.restore(state)

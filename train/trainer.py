@@ -313,6 +313,32 @@ class Trainer:
 
     def _expert_replays(self, state: TrainState) -> TrainState:
         failed, rows, valid_task = state.failed.pop(self.config.expert_replays)
+        return self._replay(state, rows, valid_task).replace(failed=failed)
+
+    def prefill(self, state: TrainState, count: int, seed: int = 0, chunk: int = 64) -> TrainState:
+        """``state`` with the experts of ``count`` bank tasks (drawn without replacement among
+        those with an expert) replayed into the buffer that holds expert transitions: a
+        stock of demonstrations before the first iteration (e.g. for a behaviour-cloned start)."""
+        if self.demos is None:
+            raise ValueError("prefilling needs expert demonstrations")
+        solved = np.flatnonzero(np.asarray(self.demos.lengths) > 0)
+        if count > len(solved):
+            raise ValueError(f"cannot prefill {count} expert demonstrations: the task bank has {len(solved)}")
+        rows = np.random.default_rng(seed).choice(solved, count, replace=False)
+        target = state.expert_buffer if self.config.expert_share else state.buffer
+        chunk = max(1, min(chunk, target.capacity // (self.demos.max_steps * self.env.max_arms)))
+        padded = np.resize(rows, -(-count // chunk) * chunk).reshape(-1, chunk)
+        valid = (np.arange(padded.size) < count).reshape(padded.shape)
+
+        @jax.jit
+        def run(state, rows, valid):
+            return jax.lax.scan(lambda s, x: (self._replay(s, *x), None), state, (rows, valid))[0]
+
+        return run(state, jnp.asarray(padded, jnp.int32), jnp.asarray(valid))
+
+    def _replay(self, state: TrainState, rows, valid_task) -> TrainState:
+        """``state`` with the experts of bank rows ``rows`` [R] (where ``valid_task``) replayed
+        from their start and their transitions stored."""
         tasks = self.bank.take(rows)
         tolerance = state.envs.tolerance[tasks.active.sum(-1) - 1]
         start = jax.vmap(lambda task, tol: self.env.reset(None, task, tol))(tasks, tolerance)
@@ -327,7 +353,7 @@ class Trainer:
             state = state.replace(expert_buffer=state.expert_buffer.insert(transitions, arm_valid))
         else:
             state = state.replace(buffer=state.buffer.insert(transitions, arm_valid))
-        return state.replace(failed=failed, expert_steps=state.expert_steps + valid.sum().astype(jnp.int32))
+        return state.replace(expert_steps=state.expert_steps + valid.sum().astype(jnp.int32))
 
     def _tolerances(self, curriculum: GroupedCurriculum) -> jnp.ndarray:
         """[max_arms, 2] reset tolerances by team size at the curriculum's levels."""
