@@ -392,7 +392,8 @@ def main(argv=None) -> None:
     checkpoints = Checkpoints(run_dir / "checkpoints", keep=3, with_buffer=settings["with_buffer"])
     state = trainer.init(jax.random.key(settings["seed"]))
     _log(f"device memory: task bank {_megabytes(bank)} ({bank.size} tasks), demonstrations {_megabytes(demos)}, "
-         f"replay buffer {_megabytes(state.buffer)}, evaluation tasks {_megabytes(eval_bank)}")
+         f"replay buffer {_megabytes(state.buffer)}, expert buffer {_megabytes(state.expert_buffer)}, "
+         f"evaluation tasks {_megabytes(eval_bank)}")
     elapsed, iteration = 0.0, 0
     if settings.get("expert_prefill") and not args.resume:
         _log(f"replaying {settings['expert_prefill']} expert demonstrations into the buffer...")
