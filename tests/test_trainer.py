@@ -182,8 +182,11 @@ def test_expert_share_keeps_demonstrations_in_their_own_buffer(one_arm):
     state, _ = trainer.iteration(trainer.init(jax.random.key(0)))
     assert int(state.buffer.inserted) == 16 and not np.asarray(state.buffer.data.expert[:16]).any()
     assert int(state.expert_buffer.inserted) == int(state.expert_steps) > 0
-    batch = trainer._sample(state, jax.random.key(3))
+    batch = trainer._sample(state, jax.random.key(3), state.agent.updates)
     assert int(np.asarray(batch.expert).sum()) == 4  # round(0.25 x 16)
+    cloning = _trainer(tasks, store, (1e-4, 1e-4), expert_share=0.25, expert_buffer=512, sac=SACConfig(bc_start=5))
+    for updates, experts in ((4, 16), (5, 4)):  # a behaviour-cloned start draws whole batches of expert transitions
+        assert int(np.asarray(cloning._sample(state, jax.random.key(3), jnp.asarray(updates)).expert).sum()) == experts
     with pytest.raises(ValueError, match="expert_share"):
         TrainConfig(expert_share=0.25, expert=False)
     with pytest.raises(ValueError, match="expert_buffer"):

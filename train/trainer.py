@@ -369,17 +369,22 @@ class Trainer:
             return jnp.ones((), jnp.float32)
         return (jnp.asarray(LEVELS)[self.level(state.curriculum), 0] / LEVELS[0, 0]) ** self.config.noise_decay
 
-    def _sample(self, state: TrainState, key) -> Transitions:
+    def _sample(self, state: TrainState, key, updates) -> Transitions:
         """A training batch: uniform from the buffer, or with ``expert_share`` that fraction
-        drawn from the expert buffer (from the main buffer while the expert buffer is empty)."""
+        drawn from the expert buffer (from the main buffer while the expert buffer is empty);
+        during a behaviour-cloned start (``updates`` < ``bc_start``) all of it."""
         config = self.config
         if not config.expert_share:
             return state.buffer.sample(key, config.batch_size)
         expert_rows = round(config.expert_share * config.batch_size)
+        if config.sac.bc_start:
+            expert_rows = jnp.where(updates < config.sac.bc_start, config.batch_size, expert_rows)
         main_key, expert_key, fallback_key = jax.random.split(key, 3)
-        expert = jax.lax.cond(state.expert_buffer.size > 0, lambda: state.expert_buffer.sample(expert_key, expert_rows),
-                              lambda: state.buffer.sample(fallback_key, expert_rows))
-        return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), state.buffer.sample(main_key, config.batch_size - expert_rows), expert)
+        expert = jax.lax.cond(state.expert_buffer.size > 0, lambda: state.expert_buffer.sample(expert_key, config.batch_size),
+                              lambda: state.buffer.sample(fallback_key, config.batch_size))
+        from_expert = jnp.arange(config.batch_size) >= config.batch_size - expert_rows
+        main = state.buffer.sample(main_key, config.batch_size)
+        return jax.tree.map(lambda m, e: jnp.where(from_expert.reshape(-1, *(1,) * (m.ndim - 1)), e, m), main, expert)
 
     def _updates(self, state: TrainState, key) -> tuple[TrainState, dict]:
         config = self.config
@@ -387,7 +392,7 @@ class Trainer:
 
         def update(agent, update_key):
             sample_key, sac_key = jax.random.split(update_key)
-            batch = self._sample(state, sample_key)
+            batch = self._sample(state, sample_key, agent.updates)
             batch = jax.lax.with_sharding_constraint(batch, NamedSharding(self.mesh, PartitionSpec("data")))
             if config.bc:
                 return bc_update(agent, batch, config.sac)
