@@ -80,6 +80,9 @@ def test_team_options_and_a_task_file_subset(tmp_path, capsys):
     (["--bc"], 0.0, 0),
     (["--hindsight", "0", "--expert-bc", "0"], 0.0, 0),
     (["--preset", "paper"], 0.0, 0),
+    (["--preset", "team"], 1.0, 1),
+    (["--preset", "team", "--bc"], 0.0, 0),
+    (["--preset", "team", "--no-expert"], 0.0, 1),
 ])
 def test_preset_additions_give_way_to_the_ablations(flags, expert_bc, hindsight):
     """The cpu preset's expert term and hindsight goals step aside for the ablations that
