@@ -116,15 +116,12 @@ def success_table(outcomes: Outcomes, bins: np.ndarray, names: list[str]) -> dic
 
 
 def team_rates(outcomes: Outcomes) -> dict[int, dict[str, float]]:
-    """Per team size: success, collision and timeout rates, and the share of arms within
-    tolerance when their episode ended (``arm_reach_rate``)."""
-    rates = {}
-    for size in sorted(set(outcomes.team.tolist())):
-        mine = outcomes.select(outcomes.team == size)
-        rates[int(size)] = {"tasks": int(len(mine.team)), "success_rate": float(mine.success.mean()),
-                            "collision_rate": float(mine.collision.mean()), "timeout_rate": float(mine.timeout.mean()),
-                            "arm_reach_rate": float(mine.reached.sum() / mine.team.sum())}
-    return rates
+    """Per team size: tasks, success, collision and timeout rates, and the share of arms
+    within tolerance when their episode ended (``arm_reach_rate``), as
+    :meth:`~mjx_multiarm.wrappers.EpisodeStats.summary` counts them."""
+    by_team = outcomes.stats(int(outcomes.team.max())).summary()["by_team_size"]
+    names = ("success_rate", "collision_rate", "timeout_rate", "arm_reach_rate")
+    return {size: {"tasks": row["episodes"], **{name: row[name] for name in names}} for size, row in by_team.items()}
 
 
 def summary(outcomes: Outcomes, bins: np.ndarray, names: list[str]) -> dict:
