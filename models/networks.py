@@ -57,12 +57,18 @@ class SequenceEncoder(nnx.Module):
     def __call__(self, obs, mask):
         if self.rotations:
             obs = rotation_features(obs)
-        zeros = jnp.zeros((*obs.shape[:-2], self.hidden), obs.dtype)
-        carry = (zeros, zeros)
+        cell, carry = self.cell, None  # None: the zero state, untouched so far
         for t in range(obs.shape[-2]):  # short sequences (max_arms): unrolled
-            new, _ = self.cell(carry, obs[..., t, :])
-            keep = mask[..., t, None]
-            carry = tuple(jnp.where(keep, n, c) for n, c in zip(new, carry))
+            gates = cell.dense_i(obs[..., t, :])
+            # From the zero state the hidden projection is its bias alone: skipping that
+            # matmul at the first element changes no number and saves 18 % of the FLOPs of
+            # a 4-element encoding, 70 % of a 1-element one.
+            gates = gates + (cell.dense_h.bias[...] if carry is None else cell.dense_h(carry[1]))
+            i, f, g, o = jnp.split(gates, 4, axis=-1)
+            i, f, g, o = cell.gate_fn(i), cell.gate_fn(f), cell.activation_fn(g), cell.gate_fn(o)
+            c = i * g if carry is None else f * carry[0] + i * g
+            previous = carry or (0.0, 0.0)
+            carry = tuple(jnp.where(mask[..., t, None], new, old) for new, old in zip((c, o * cell.activation_fn(c)), previous))
         return carry[1]
 
 

@@ -29,6 +29,25 @@ def test_padding_never_changes_the_encoding():
     assert not np.allclose(encoder(obs, mask), encoder(obs, jnp.ones_like(mask)))  # real elements do count
 
 
+def test_encoder_equals_flax_lstm_cell_from_the_zero_state():
+    """The first element's skipped hidden matmul changes no value and no gradient."""
+    encoder = SequenceEncoder(nnx.Rngs(0))
+    obs, mask = _sequences(jax.random.key(2), 5, 4, 3)
+    mask = mask.at[0].set(True).at[1].set(jnp.array([False, False, False, True]))  # 4, 3 and 1 real elements
+
+    def reference(encoder, obs, mask):
+        carry = encoder.cell.initialize_carry(obs[:, 0].shape, nnx.Rngs(0))
+        for t in range(obs.shape[1]):
+            new, _ = encoder.cell(carry, obs[:, t])
+            carry = tuple(jnp.where(mask[:, t, None], n, c) for n, c in zip(new, carry))
+        return carry[1]
+
+    np.testing.assert_array_equal(encoder(obs, mask), reference(encoder, obs, mask))
+    loss = lambda f: nnx.grad(lambda e: jnp.sum(jnp.sin(f(e, obs, mask))))(encoder)  # noqa: E731
+    fast, slow = loss(lambda e, o, m: e(o, m)), loss(reference)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7), fast, slow)
+
+
 def test_actor_and_critic_shapes_and_any_leading_dims():
     actor, critic = Actor(nnx.Rngs(0)), TwinCritic(nnx.Rngs(1))
     obs = jax.random.normal(jax.random.key(0), (2, 5, 4, 4, 107))  # [devices?, envs, arms, seq, 107]
