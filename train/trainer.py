@@ -252,11 +252,21 @@ class Trainer:
         self.teams = teams
         self.mesh = Mesh(np.array(devices), ("data",))
         self.autoreset = AutoReset(env, bank)
-        self.iteration = jax.jit(self._iteration)
+        self.iteration = jax.jit(self._iteration, donate_argnums=0)  # the buffers are updated in place, not copied
 
     def place(self, state: TrainState) -> TrainState:
-        """``state`` laid out over the devices: environments split, everything else replicated."""
-        return jax.device_put(state, self._shardings(state))
+        """``state`` laid out over the devices: environments split, everything else replicated,
+        every leaf its own buffer (``iteration`` donates the state it is given)."""
+        seen = set()
+
+        def own_buffer(x):
+            buffers = tuple(shard.data.unsafe_buffer_pointer() for shard in x.addressable_shards)
+            if seen.intersection(buffers):
+                return jnp.copy(x)
+            seen.update(buffers)
+            return x
+
+        return jax.tree.map(own_buffer, jax.device_put(state, self._shardings(state)))
 
     def _shardings(self, state: TrainState):
         replicated, split = NamedSharding(self.mesh, PartitionSpec()), NamedSharding(self.mesh, PartitionSpec("data"))
