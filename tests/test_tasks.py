@@ -16,7 +16,15 @@ from mjx_multiarm.scene import build_scene
 from mjx_multiarm.tasks import __main__ as cli
 from mjx_multiarm.tasks import load_tasks, save_tasks, task_difficulty
 from mjx_multiarm.tasks import generate as generation
-from mjx_multiarm.tasks.generate import MIN_BASE_SPACING, GenerationSpec, generate_chunk, generate_dataset, spec_record
+from mjx_multiarm.tasks.generate import (
+    MIN_BASE_SPACING,
+    ORIGINAL_MAX_OFFSET,
+    GenerationSpec,
+    generate_chunk,
+    generate_dataset,
+    sample_bases_original,
+    spec_record,
+)
 from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, bin_index, take
 
 
@@ -51,6 +59,34 @@ def test_every_bin_is_populated_for_teams(generated):
         row = summary["by_team_size"][str(team)]
         assert all(row["difficulty"][name] > 0 for name in DIFFICULTY_BINS), (team, row)
         assert row["difficulty"]["outside"] == 0
+
+
+def test_original_layout_walks_bases_and_reaches_past_the_paper_bins():
+    teams = np.repeat([1, 2, 3, 4], 500)
+    base_pos, yaw, difficulty = sample_bases_original(np.random.default_rng(0), teams, 4)
+    active = np.arange(4) < teams[:, None]
+    assert not base_pos[~active].any() and not base_pos[..., 2].any() and yaw.shape == (2000, 4)
+    steps = np.abs(np.diff(base_pos[..., :2], axis=1))  # each base within 1 m (per axis) of the previous one
+    assert steps[active[:, 1:]].max() <= ORIGINAL_MAX_OFFSET
+    gaps = np.linalg.norm(base_pos[:, :, None] - base_pos[:, None], axis=-1)
+    assert gaps[active[:, :, None] & active[:, None] & ~np.eye(4, dtype=bool)].min() > MIN_BASE_SPACING
+    np.testing.assert_allclose(difficulty, task_difficulty(base_pos, active), atol=1e-6)
+    assert (difficulty[teams == 1] == 0).all()
+    four = difficulty[teams == 4]
+    assert 0.2 < (four > 0.5).mean() and four.max() > 0.85  # beyond the paper's last bin, as the original's tasks
+
+
+def test_original_layout_tasks_are_valid_and_deterministic():
+    spec = GenerationSpec(count=8, arm_counts=(1, 2, 3, 4), seed=5, chunk_size=8, layout="original")
+    tasks = generate_chunk(spec, 0)
+    scene = build_scene(4)
+    for joints in (tasks.start_joints, tasks.goal_joints):
+        assert not np.asarray(scene_contacts(scene, tasks.base_pos, tasks.base_quat, jnp.asarray(joints, jnp.float32),
+                                             tasks.active).collided).any()
+    np.testing.assert_allclose(task_difficulty(tasks.base_pos, tasks.active), tasks.difficulty, atol=1e-6)
+    np.testing.assert_array_equal(generate_chunk(spec, 0).base_pos, tasks.base_pos)
+    with pytest.raises(ValueError, match="layout"):
+        GenerationSpec(count=8, arm_counts=(2,), layout="circle")
 
 
 def test_generation_is_deterministic_and_resumable(tmp_path, monkeypatch):

@@ -62,7 +62,7 @@ from mjx_multiarm.expert.store import ExpertStore
 from mjx_multiarm.policy import policy_env_settings
 from mjx_multiarm.tasks.__main__ import parse_arms
 from mjx_multiarm.tasks.dataset import atomic_write, load_tasks, save_tasks
-from mjx_multiarm.tasks.generate import GenerationSpec, generate_dataset
+from mjx_multiarm.tasks.generate import LAYOUTS, GenerationSpec, generate_dataset
 from mjx_multiarm.tasks.types import take
 from mjx_multiarm.wrappers import TaskBank
 from train.agent import SACConfig
@@ -141,6 +141,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--steps", type=int, help="stop after this many environment steps")
     parser.add_argument("--minutes", type=float, help="stop after this much training time")
     parser.add_argument("--arms", type=parse_arms, help="team sizes of generated tasks, e.g. 1 or 1-4")
+    parser.add_argument("--layout", choices=LAYOUTS, default="stratified", help="base placement of generated training tasks: "
+                        "stratified over the paper's difficulty bins (default) or as the original code's training tasks "
+                        "(difficulty up to ~0.97); evaluation tasks stay stratified")
     parser.add_argument("--tasks", type=pathlib.Path, help="training task dataset (.npz) instead of generated tasks")
     parser.add_argument("--experts", type=pathlib.Path, help="expert file of --tasks (planned into the run dir if absent)")
     parser.add_argument("--eval-tasks", type=pathlib.Path, help="evaluation task dataset (default: generated)")
@@ -236,7 +239,7 @@ def _settings(args) -> dict:
     return {
         "preset": args.preset, **preset, "seed": args.seed, "expert": not args.no_expert, "bc": args.bc, "reward": args.reward,
         "observe": args.observe, "sac": args.sac, "curriculum": not args.no_curriculum, "tasks": str(args.tasks) if args.tasks else None,
-        "task_limit": args.train_tasks if args.tasks else None,
+        "task_limit": args.train_tasks if args.tasks else None, "layout": args.layout,
         "experts": str(args.experts) if args.experts else None, "eval_tasks_file": str(args.eval_tasks) if args.eval_tasks else None,
         "with_buffer": not args.no_buffer_checkpoint, "checkpoint_minutes": args.checkpoint_minutes,
     }
@@ -247,10 +250,11 @@ def _megabytes(tree) -> str:
     return f"{sum(x.nbytes for x in jax.tree.leaves(tree)) / 1e6:.1f} MB"
 
 
-def _generated_tasks(path: pathlib.Path, arms, count: int, seed: int, workers: int):
+def _generated_tasks(path: pathlib.Path, arms, count: int, seed: int, workers: int, layout: str = "stratified"):
     """The run's generated tasks at ``path`` (made resumably in ``workers`` processes if absent)."""
     if not path.exists():
-        spec = GenerationSpec(count=count, arm_counts=tuple(arms), mode="static", seed=seed, max_arms=max(arms), chunk_size=256)
+        spec = GenerationSpec(count=count, arm_counts=tuple(arms), mode="static", seed=seed, max_arms=max(arms), chunk_size=256,
+                              layout=layout)
         generate_dataset(spec, path, workers=min(workers, spec.num_chunks))
     return load_tasks(path)[0]
 
@@ -270,7 +274,7 @@ def _prepare(run_dir: pathlib.Path, settings: dict, env_config: EnvConfig, worke
     else:
         tasks_path = run_dir / "tasks.npz"
         log(f"generating {settings['train_tasks']} training tasks ({','.join(map(str, arms))} arms)...")
-        tasks = _generated_tasks(tasks_path, arms, settings["train_tasks"], settings["seed"], workers)
+        tasks = _generated_tasks(tasks_path, arms, settings["train_tasks"], settings["seed"], workers, settings.get("layout", "stratified"))
     if settings["eval_tasks_file"]:
         eval_tasks = load_tasks(settings["eval_tasks_file"])[0]
     else:
@@ -375,6 +379,9 @@ def main(argv=None) -> None:
         if args.minutes is not None:
             settings["minutes"] = args.minutes
     else:
+        if args.tasks and args.layout != "stratified":
+            sys.exit("error: --layout places generated tasks; --tasks gives a file (generate it with "
+                     "python -m mjx_multiarm.tasks generate --layout ...)")
         settings = _settings(args)
         run_dir = args.run_dir or pathlib.Path("runs") / f"{args.preset}-{time.strftime('%Y%m%d-%H%M%S')}"
     try:

@@ -21,7 +21,7 @@ import sys
 
 from mjx_multiarm.progress import Progress
 from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
-from mjx_multiarm.tasks.generate import MODES, GenerationSpec, generate_dataset
+from mjx_multiarm.tasks.generate import LAYOUTS, MODES, GenerationSpec, generate_dataset
 from mjx_multiarm.tasks.original_json import export_tasks, import_tasks
 from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_index
 
@@ -90,6 +90,8 @@ def main(argv=None) -> None:
     gen.add_argument("--mode", choices=MODES, help="static, or dynamic (tasks usable in both modes)")
     gen.add_argument("--seed", type=int)
     gen.add_argument("--max-arms", type=int, help="arm slots (default: the largest team)")
+    gen.add_argument("--layout", choices=LAYOUTS, help="base placement: stratified over difficulty bins (default) or "
+                     "original (the original code's random walk, difficulty up to ~0.97)")
     gen.add_argument("--out", type=pathlib.Path, required=True)
     gen.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes (default: all cores)")
     gen.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -111,7 +113,8 @@ def main(argv=None) -> None:
             base = PRESETS[args.preset] if args.preset else None
             if base is None and (args.arms is None or args.count is None):
                 parser.error("generate: give --preset, or --arms and --count")
-            fields = {"arm_counts": args.arms, "count": args.count, "mode": args.mode, "seed": args.seed, "max_arms": args.max_arms}
+            fields = {"arm_counts": args.arms, "count": args.count, "mode": args.mode, "seed": args.seed, "max_arms": args.max_arms,
+                      "layout": args.layout}
             overrides = {k: v for k, v in fields.items() if v is not None}
             spec = dataclasses.replace(base, **overrides) if base else GenerationSpec(**overrides)
             progress = None if args.quiet else Progress(spec.count, "tasks")

@@ -1,9 +1,11 @@
 """Task generation (paper section 4.1): vectorized, seeded, deterministic.
 
 For each task of k arms: sample k planar base poses (random yaw, no two bases closer than
-``MIN_BASE_SPACING``), stratified so that every difficulty bin is populated (layouts are
-drawn until the task's difficulty falls in its assigned bin; tasks harder than 0.5, beyond
-the paper's last bin, are rejected); then three collision-free composite configurations,
+``MIN_BASE_SPACING``). The default ``layout="stratified"`` populates every difficulty bin
+evenly (layouts are drawn until the task's difficulty falls in its assigned bin; tasks
+harder than 0.5, beyond the paper's last bin, are rejected); ``layout="original"`` places
+bases as the original code's training tasks were (:func:`sample_bases_original`: a random
+walk, difficulty whatever it comes out, up to ~0.97). Then three collision-free composite configurations,
 each from batched damped-least-squares IK toward random end-effector positions inside each
 arm's workspace hemisphere, pulled toward the home configuration. Arms whose IK fails,
 leaves the joint limits, or collides are resampled; a task stuck for ``MAX_ROUNDS`` rounds
@@ -53,6 +55,10 @@ LAYOUT_BATCH = 512  # candidate layouts per draw (a fixed shape: one compile)
 PROPOSALS = 16  # placement attempts per arm in a candidate layout
 MAX_LAYOUT_DRAWS = 200  # draws of LAYOUT_BATCH candidates before a (team, bin) is given up
 MODES = ("static", "dynamic")
+LAYOUTS = ("stratified", "original")
+#: The original code's base placement (configs/default.json, "random" generation): each
+#: base offset from the previous one by up to this much along x and y (m).
+ORIGINAL_MAX_OFFSET = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,6 +71,7 @@ class GenerationSpec:
     seed: int = 0
     max_arms: int | None = None
     chunk_size: int = CHUNK_SIZE
+    layout: str = "stratified"  # base placement: difficulty bins ("stratified") or as the original code ("original")
 
     def __post_init__(self):
         if self.count < 1:
@@ -73,6 +80,8 @@ class GenerationSpec:
             raise ValueError(f"arm_counts must be positive team sizes, got {self.arm_counts}")
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"layout must be one of {LAYOUTS}, got {self.layout!r}")
         if self.max_arms is not None and self.max_arms < max(self.arm_counts):
             raise ValueError(f"max_arms={self.max_arms} is smaller than the largest team {max(self.arm_counts)}")
 
@@ -155,6 +164,26 @@ def sample_bases(rng: np.random.Generator, teams, bins, slots: int):
     return base_pos, yaw, difficulty
 
 
+def sample_bases_original(rng: np.random.Generator, teams, slots: int):
+    """Base positions [n, slots, 3], yaws [n, slots] and difficulty [n] placed as the
+    original's training tasks: every base is the previous one plus a uniform offset in
+    [-1, 1] m along x and y, layouts redrawn until no two bases are closer than
+    ``MIN_BASE_SPACING``; the difficulty is measured, not chosen."""
+    n = len(teams)
+    base_pos = np.zeros((n, slots, 3))
+    for team in np.unique(teams):
+        todo = np.flatnonzero(teams == team)
+        while len(todo):
+            steps = rng.uniform(-ORIGINAL_MAX_OFFSET, ORIGINAL_MAX_OFFSET, (len(todo), team, 2))
+            xy = np.cumsum(steps, axis=1)
+            gap = np.linalg.norm(xy[:, :, None] - xy[:, None], axis=-1) + np.eye(team) * 1e9
+            ok = gap.min(axis=(1, 2)) > MIN_BASE_SPACING
+            base_pos[todo[ok], :team, :2] = xy[ok] - xy[ok].mean(axis=1, keepdims=True)
+            todo = todo[~ok]
+    active = np.arange(slots) < np.asarray(teams)[:, None]
+    return base_pos, rng.uniform(-np.pi, np.pi, (n, slots)), task_difficulty(base_pos, active)
+
+
 def _hemisphere_targets(rng: np.random.Generator, shape) -> np.ndarray:
     """Uniform random points [*shape, 3] in the workspace hemisphere (base frame)."""
     direction = rng.normal(size=(*shape, 3))
@@ -216,7 +245,10 @@ def generate_chunk(spec: GenerationSpec, chunk: int) -> Tasks:
     difficulty, configs = np.zeros(n), np.zeros((3, n, slots, 6))
     todo = np.ones(n, bool)
     while todo.any():  # tasks whose configurations got stuck start over with a new layout
-        pos, yaw, diff = sample_bases(rng, teams[todo], difficulty_bins[todo], slots)
+        if spec.layout == "original":
+            pos, yaw, diff = sample_bases_original(rng, teams[todo], slots)
+        else:
+            pos, yaw, diff = sample_bases(rng, teams[todo], difficulty_bins[todo], slots)
         quat = np.asarray(yaw_quat(yaw), np.float64)
         ok = np.ones(todo.sum(), bool)
         found = []
