@@ -25,6 +25,8 @@ by decreasing base distance, so the observing arm itself is always the last elem
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax.numpy as jnp
 from flax import struct
 
@@ -36,8 +38,11 @@ EE_POSE = slice(19, 26)
 TARGET_POSE_PREV, TARGET_POSE = slice(26, 33), slice(33, 40)
 #: The element's five quaternions (end effector and target at t-1 and t, base).
 QUATERNIONS = (slice(15, 19), slice(22, 26), slice(29, 33), slice(36, 40), slice(103, 107))
-#: Size of an element whose quaternions are replaced by rotation-matrix columns.
-ROTATION_ELEMENT_SIZE = ELEMENT_SIZE + 2 * len(QUATERNIONS)
+EE_POSITION, EE_QUAT = slice(19, 22), slice(22, 26)
+TARGET_POSITION, TARGET_QUAT = slice(33, 36), slice(36, 40)
+#: Goal-error features: 1 cm of position error -> 0.1, and the rotation error (rad, small angles).
+GOAL_POSITION_SCALE = 10.0
+GOAL_FEATURES = 6
 #: Default neighbour radius (m): two workspace radii, as in the original code.
 NEIGHBOUR_RADIUS = 1.7
 
@@ -104,6 +109,40 @@ def observe(base_pos, base_quat, active, prev: ArmSnapshot, now: ArmSnapshot, ra
     obs = jnp.take_along_axis(elements, order[..., None], axis=-2)
     mask = jnp.take_along_axis(seen, order, axis=-1)
     return jnp.where(mask[..., None], obs, 0.0), mask
+
+
+@dataclasses.dataclass(frozen=True)
+class InputFeatures:
+    """What the networks compute from each 107-D element before their LSTM (the stored
+    observations stay 107-D, so replay and hindsight relabelling are unchanged).
+
+    ``rotations``: quaternions replaced by two rotation-matrix columns
+    (:func:`rotation_features`). ``goal``: the end effector's error to its target
+    appended (:func:`goal_features`). Both off: the element as it is, as the original."""
+
+    rotations: bool = False
+    goal: bool = False
+
+    @property
+    def size(self) -> int:
+        """Length of a transformed element."""
+        return ELEMENT_SIZE + 2 * len(QUATERNIONS) * self.rotations + GOAL_FEATURES * self.goal
+
+    def __call__(self, obs):
+        """Elements [..., 107] -> [..., size]."""
+        out = rotation_features(obs) if self.rotations else obs
+        return jnp.concatenate([out, goal_features(obs)], axis=-1) if self.goal else out
+
+
+def goal_features(obs):
+    """[..., 6] of elements [..., 107]: the target's position relative to the end effector
+    (observer's frame, x ``GOAL_POSITION_SCALE``) and the rotation taking the end effector
+    onto the target as a rotation vector (its small-angle form ``2 sign(w) xyz``, in the end
+    effector's frame). The networks otherwise have to resolve a 2 cm goal from two poses
+    given in metres; zero for masked (all-zero) elements."""
+    position = GOAL_POSITION_SCALE * (obs[..., TARGET_POSITION] - obs[..., EE_POSITION])
+    error = canonical_quat(quat_mul(quat_conjugate(obs[..., EE_QUAT]), obs[..., TARGET_QUAT]))
+    return jnp.concatenate([position, 2.0 * error[..., 1:]], axis=-1)
 
 
 def rotation_features(obs):

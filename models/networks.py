@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from mjx_multiarm.observation import ELEMENT_SIZE, ROTATION_ELEMENT_SIZE, rotation_features
+from mjx_multiarm.observation import InputFeatures
 from mjx_multiarm.robot import NUM_JOINTS
 
 HIDDEN = 256
@@ -47,16 +47,15 @@ def _linear(inputs: int, outputs: int, rngs: nnx.Rngs) -> nnx.Linear:
 class SequenceEncoder(nnx.Module):
     """LSTM encoding of a masked observation sequence: [..., L, 107], [..., L] -> [..., 256].
 
-    ``rotations=True`` feeds the LSTM each element's orientations as rotation-matrix
-    columns instead of quaternions (:func:`~mjx_multiarm.observation.rotation_features`)."""
+    ``inputs`` says what the LSTM sees of each element (default: the element itself; see
+    :class:`~mjx_multiarm.observation.InputFeatures`)."""
 
-    def __init__(self, rngs: nnx.Rngs, hidden: int = HIDDEN, rotations: bool = False):
-        self.hidden, self.rotations = hidden, rotations
-        self.cell = nnx.OptimizedLSTMCell(ROTATION_ELEMENT_SIZE if rotations else ELEMENT_SIZE, hidden, rngs=rngs)
+    def __init__(self, rngs: nnx.Rngs, hidden: int = HIDDEN, inputs: InputFeatures = InputFeatures()):
+        self.hidden, self.inputs = hidden, inputs
+        self.cell = nnx.OptimizedLSTMCell(inputs.size, hidden, rngs=rngs)
 
     def __call__(self, obs, mask):
-        if self.rotations:
-            obs = rotation_features(obs)
+        obs = self.inputs(obs)
         cell, carry = self.cell, None  # None: the zero state, untouched so far
         for t in range(obs.shape[-2]):  # short sequences (max_arms): unrolled
             gates = cell.dense_i(obs[..., t, :])
@@ -90,9 +89,9 @@ class MLP(nnx.Module):
 class Actor(nnx.Module):
     """Gaussian policy over delta-joint actions."""
 
-    def __init__(self, rngs: nnx.Rngs, squash: bool = False, rotations: bool = False):
+    def __init__(self, rngs: nnx.Rngs, squash: bool = False, inputs: InputFeatures = InputFeatures()):
         self.squash = squash
-        self.encoder = SequenceEncoder(rngs, rotations=rotations)
+        self.encoder = SequenceEncoder(rngs, inputs=inputs)
         self.head = MLP((HIDDEN, *MLP_LAYERS, 2 * NUM_JOINTS), rngs, final_tanh=not squash)
 
     def distribution(self, obs, mask, std_scale=1.0):
@@ -136,8 +135,8 @@ class Actor(nnx.Module):
 class Critic(nnx.Module):
     """Q(observation, action) -> [...]."""
 
-    def __init__(self, rngs: nnx.Rngs, rotations: bool = False):
-        self.encoder = SequenceEncoder(rngs, rotations=rotations)
+    def __init__(self, rngs: nnx.Rngs, inputs: InputFeatures = InputFeatures()):
+        self.encoder = SequenceEncoder(rngs, inputs=inputs)
         self.head = MLP((HIDDEN + NUM_JOINTS, *MLP_LAYERS, 1), rngs, final_tanh=False)
 
     def __call__(self, obs, mask, action):
@@ -151,8 +150,8 @@ class Critic(nnx.Module):
 class TwinCritic(nnx.Module):
     """Two independent critics: (q1, q2)."""
 
-    def __init__(self, rngs: nnx.Rngs, rotations: bool = False):
-        self.q1, self.q2 = Critic(rngs, rotations), Critic(rngs, rotations)
+    def __init__(self, rngs: nnx.Rngs, inputs: InputFeatures = InputFeatures()):
+        self.q1, self.q2 = Critic(rngs, inputs), Critic(rngs, inputs)
 
     def __call__(self, obs, mask, action):
         return self.values(self.encode(obs, mask), action)

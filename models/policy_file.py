@@ -2,7 +2,7 @@
 
 A policy file is a NumPy ``.npz`` archive holding the actor's parameters (one array per
 parameter path, e.g. ``encoder/cell/ii/kernel``) and a ``__meta__`` entry: JSON with the
-format version, the architecture (``squash``, ``rotations``, every parameter's shape), the environment
+format version, the architecture (``squash``, the ``inputs`` features, every parameter's shape), the environment
 settings the policy was trained for (action scale, neighbour radius, ...), free-form
 training provenance, and a SHA-256 over the parameters. Loading checks all of it, so a
 truncated or altered file, or one of another architecture, fails with a message that
@@ -11,6 +11,7 @@ says what is wrong instead of producing a silently broken planner.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -22,6 +23,7 @@ import numpy as np
 from flax import nnx
 
 from models.networks import Actor
+from mjx_multiarm.observation import InputFeatures
 
 FORMAT = "mjx-multiarm-policy"
 VERSION = 1
@@ -45,20 +47,20 @@ def _digest(arrays: dict[str, np.ndarray]) -> str:
     return sha.hexdigest()
 
 
-def _architecture(squash: bool, rotations: bool) -> dict[str, list[int]]:
+def _architecture(squash: bool, inputs: InputFeatures) -> dict[str, list[int]]:
     """Parameter shapes of a freshly built actor (no weights materialized)."""
-    abstract = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), squash=squash, rotations=rotations))
+    abstract = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), squash=squash, inputs=inputs))
     return {_name(path): list(value.shape) for path, value in nnx.to_flat_state(nnx.state(abstract, nnx.Param))}
 
 
 def save_policy(path: str | os.PathLike, actor: nnx.State, squash: bool, env_settings: dict, provenance: dict | None = None,
-                rotations: bool = False) -> None:
+                inputs: InputFeatures = InputFeatures()) -> None:
     """Write ``actor``'s parameters (an ``nnx.State`` of :class:`~models.networks.Actor`,
-    built with ``squash`` and ``rotations``) to ``path`` atomically. ``env_settings``
+    built with ``squash`` and ``inputs``) to ``path`` atomically. ``env_settings``
     records what the policy expects of the environment (``action_scale`` [6],
     ``neighbour_radius``, ``max_step`` [6])."""
     arrays = _flat(jax.device_get(actor))
-    meta = {"format": FORMAT, "version": VERSION, "squash": bool(squash), "rotations": bool(rotations), "shapes": {k: list(v.shape) for k, v in arrays.items()},
+    meta = {"format": FORMAT, "version": VERSION, "squash": bool(squash), "inputs": dataclasses.asdict(inputs), "shapes": {k: list(v.shape) for k, v in arrays.items()},
             "sha256": _digest(arrays), "env": env_settings, "provenance": provenance or {}}
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -106,8 +108,11 @@ def load_policy(path: str | os.PathLike) -> LoadedPolicy:
         raise ValueError(f"{path}: format {meta.get('format')!r} version {meta.get('version')!r}, expected {FORMAT!r} version {VERSION}")
     if _digest(contents) != meta.get("sha256"):
         raise ValueError(f"{path}: parameter checksum mismatch (the file is corrupt or was modified)")
-    rotations = bool(meta.get("rotations", False))  # files before the option hold quaternion actors
-    expected = _architecture(bool(meta["squash"]), rotations)
+    try:  # files before the input options hold plain actors, files of one option "rotations"
+        inputs = InputFeatures(**meta["inputs"]) if "inputs" in meta else InputFeatures(rotations=bool(meta.get("rotations", False)))
+    except TypeError as error:
+        raise ValueError(f"{path}: unknown input features {meta['inputs']} ({error})") from error
+    expected = _architecture(bool(meta["squash"]), inputs)
     for name, shape in expected.items():
         if name not in contents:
             raise ValueError(f"{path}: parameter {name} missing: the file holds another architecture")
@@ -117,7 +122,7 @@ def load_policy(path: str | os.PathLike) -> LoadedPolicy:
     unexpected = sorted(set(contents) - set(expected))
     if unexpected:
         raise ValueError(f"{path}: unexpected parameters {unexpected[:3]}: the file holds another architecture")
-    actor = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), squash=bool(meta["squash"]), rotations=rotations))
+    actor = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), squash=bool(meta["squash"]), inputs=inputs))
     graphdef, state = nnx.split(actor)
     flat = [(path_, nnx.Param(jax.numpy.asarray(contents[_name(path_)]))) for path_, _ in nnx.to_flat_state(state)]
     return LoadedPolicy(nnx.merge(graphdef, nnx.from_flat_state(flat)), meta)

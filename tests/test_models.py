@@ -93,7 +93,7 @@ def test_rotation_features_are_continuous_and_blind_to_the_quaternion_sign():
     """Each quaternion of an element becomes the first two columns of its rotation matrix:
     q and -q give the same features (a sign-canonical quaternion flips at w = 0), every
     other component passes through in order, and the actor accepts the 107-D elements."""
-    from mjx_multiarm.observation import QUATERNIONS, ROTATION_ELEMENT_SIZE, rotation_features
+    from mjx_multiarm.observation import QUATERNIONS, InputFeatures, rotation_features
     from mjx_multiarm.transforms import quat_to_mat
 
     rng = np.random.default_rng(0)
@@ -105,7 +105,8 @@ def test_rotation_features_are_continuous_and_blind_to_the_quaternion_sign():
     for quat in QUATERNIONS:
         flipped[..., quat] *= -1
     features = np.asarray(rotation_features(jnp.asarray(obs)))
-    assert features.shape == (6, 3, ROTATION_ELEMENT_SIZE)
+    size = InputFeatures(rotations=True).size
+    assert features.shape == (6, 3, size) and size == 117
     np.testing.assert_allclose(np.asarray(rotation_features(jnp.asarray(flipped))), features, atol=1e-6)
     kept = np.ones(107, bool)
     for quat in QUATERNIONS:
@@ -113,9 +114,38 @@ def test_rotation_features_are_continuous_and_blind_to_the_quaternion_sign():
     first = QUATERNIONS[0]
     columns = np.asarray(quat_to_mat(jnp.asarray(obs[..., first])))[..., :, :2]
     np.testing.assert_allclose(features[..., first.start : first.start + 6], np.swapaxes(columns, -1, -2).reshape(6, 3, 6), atol=1e-6)
-    passthrough = np.ones(ROTATION_ELEMENT_SIZE, bool)
+    passthrough = np.ones(size, bool)
     for i, quat in enumerate(QUATERNIONS):
         passthrough[quat.start + 2 * i : quat.start + 2 * i + 6] = False
     np.testing.assert_array_equal(features[..., passthrough], obs[..., kept])
-    mean, _ = Actor(nnx.Rngs(0), rotations=True)(jnp.asarray(obs), jnp.ones((6, 3), bool))
+    mean, _ = Actor(nnx.Rngs(0), inputs=InputFeatures(rotations=True))(jnp.asarray(obs), jnp.ones((6, 3), bool))
     assert mean.shape == (6, 6) and np.isfinite(np.asarray(mean)).all()
+
+
+def test_goal_features_are_the_end_effector_error_to_its_target():
+    """Position error scaled to 0.1 per cm, rotation error as a rotation vector in the end
+    effector's frame (exact direction, small-angle magnitude), blind to quaternion signs;
+    appended after the element (or its rotation features)."""
+    from mjx_multiarm.observation import EE_POSITION, EE_QUAT, TARGET_POSITION, TARGET_QUAT, InputFeatures, goal_features
+    from mjx_multiarm.transforms import quat_mul
+
+    rng = np.random.default_rng(1)
+    obs = rng.normal(size=(5, 107)).astype(np.float32)
+    ee = rng.normal(size=(5, 4))
+    ee /= np.linalg.norm(ee, axis=-1, keepdims=True)
+    axis = rng.normal(size=(5, 3))
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    angle = 0.05
+    turn = np.concatenate([np.full((5, 1), np.cos(angle / 2)), np.sin(angle / 2) * axis], axis=-1)
+    obs[:, EE_QUAT] = ee
+    obs[:, TARGET_QUAT] = -np.asarray(quat_mul(jnp.asarray(ee), jnp.asarray(turn)))  # the target: ee turned, sign flipped
+    obs[:, TARGET_POSITION] = obs[:, EE_POSITION] + np.array([0.02, 0.0, -0.01])
+    features = np.asarray(goal_features(jnp.asarray(obs)))
+    np.testing.assert_allclose(features[:, :3], np.tile([0.2, 0.0, -0.1], (5, 1)), atol=1e-5)
+    np.testing.assert_allclose(features[:, 3:], angle * axis, rtol=1e-3, atol=1e-6)
+    assert not np.asarray(goal_features(jnp.zeros((2, 107)))).any()  # masked elements stay zero
+    both = np.asarray(InputFeatures(rotations=True, goal=True)(jnp.asarray(obs)))
+    assert both.shape == (5, 123) and InputFeatures(goal=True).size == 113
+    np.testing.assert_array_equal(both[:, -6:], features)
+    mean, _ = Actor(nnx.Rngs(0), inputs=InputFeatures(goal=True))(jnp.asarray(obs[:, None]), jnp.ones((5, 1), bool))
+    assert mean.shape == (5, 6) and np.isfinite(np.asarray(mean)).all()

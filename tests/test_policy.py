@@ -13,6 +13,7 @@ from models.policy_file import load_policy, save_policy
 from mjx_multiarm import Planner, evaluate_arms
 from mjx_multiarm.policy import policy_env_settings
 from mjx_multiarm.env import ReachingEnv
+from mjx_multiarm.observation import InputFeatures
 from mjx_multiarm.tasks.types import take, with_slots
 from mjx_multiarm.transforms import wxyz_to_xyzw
 from mjx_multiarm.wrappers import TaskBank
@@ -34,18 +35,19 @@ def test_round_trip_gives_the_same_actor(policy_path):
     assert loaded.meta["provenance"] == {"note": "random weights"} and not loaded.squash
 
 
-def test_round_trip_of_a_rotation_feature_actor(tmp_path):
-    """An actor that sees rotation-matrix columns comes back as one (the flag is in the
-    file), and a quaternion actor's file is not read as one."""
-    path = tmp_path / "rotations.npz"
-    original = Actor(nnx.Rngs(4), rotations=True)
-    save_policy(path, nnx.state(original), False, policy_env_settings(ReachingEnv(2)), rotations=True)
+@pytest.mark.parametrize("inputs", [InputFeatures(rotations=True), InputFeatures(goal=True), InputFeatures(True, True)])
+def test_round_trip_of_actors_with_input_features(tmp_path, inputs):
+    """An actor with input features comes back with them (they are in the file), and a
+    plain actor's file is not read as one."""
+    path = tmp_path / "features.npz"
+    original = Actor(nnx.Rngs(4), inputs=inputs)
+    save_policy(path, nnx.state(original), False, policy_env_settings(ReachingEnv(2)), inputs=inputs)
     loaded = load_policy(path)
     obs = np.random.default_rng(1).normal(size=(4, 2, 107)).astype(np.float32)
     mask = np.ones((4, 2), bool)
-    assert loaded.meta["rotations"] and loaded.actor.encoder.rotations
+    assert loaded.actor.encoder.inputs == inputs
     np.testing.assert_array_equal(np.asarray(loaded.actor(obs, mask)[0]), np.asarray(original(obs, mask)[0]))
-    save_policy(tmp_path / "mislabelled.npz", nnx.state(Actor(nnx.Rngs(4))), False, {}, rotations=True)
+    save_policy(tmp_path / "mislabelled.npz", nnx.state(Actor(nnx.Rngs(4))), False, {}, inputs=inputs)
     with pytest.raises(ValueError, match="another architecture"):
         load_policy(tmp_path / "mislabelled.npz")
 

@@ -11,6 +11,7 @@ import pytest
 from flax import nnx
 
 from models.policy_file import load_policy
+from mjx_multiarm.observation import InputFeatures
 from train import sac
 from train.checkpoint import Checkpoints
 
@@ -64,13 +65,13 @@ def test_team_options_and_a_task_file_subset(tmp_path, capsys):
     run = tmp_path / "team"
     sac.main(["--preset", "tiny", "--run-dir", str(run), "--workers", "1", "--steps", "64", "--tasks", str(tmp_path / "many.npz"),
               "--train-tasks", "6", "--curriculum-by-team", "1", "--collisions", "restore", "--expert-share", "0.25",
-              "--rotations", "1", "--json"])
+              "--rotations", "1", "--goal-features", "1", "--json"])
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert load_tasks(run / "tasks.npz")[0].num_tasks == 6 and len(ExpertStore(run / "tasks.experts").task_ids) == 6
     assert set(summary["curriculum_levels_by_team"]) == {"1", "2"}
     header = (run / "metrics.csv").read_text().splitlines()[0].split(",")
     assert {"level_1", "level_2", "window_success_1", "window_success_2"} <= set(header)
-    assert load_policy(run / "policy.npz").meta["rotations"]
+    assert load_policy(run / "policy.npz").actor.encoder.inputs == InputFeatures(rotations=True, goal=True)
     assert set(summary["evaluation"]["by_team_size"]["1"]) >= {"arm_reach_rate", "collision_rate", "timeout_rate"}
 
 

@@ -26,6 +26,7 @@ import optax
 from flax import nnx, struct
 
 from models.networks import Actor, TwinCritic
+from mjx_multiarm.observation import InputFeatures
 from mjx_multiarm.robot import NUM_JOINTS
 from train.replay import Transitions
 
@@ -46,7 +47,7 @@ class SACConfig:
     bc_lr: float = 1e-3  # behaviour-cloning ablation
     expert_bc: float = 0.0  # weight of the Q-filtered expert behaviour-cloning term of the actor loss (0: the original)
     policy_average: float = 0.0  # Polyak rate of the deployed average actor per update (0: the latest actor, as the original)
-    rotations: bool = False  # networks see orientations as rotation-matrix columns (False: quaternions, as the original)
+    inputs: InputFeatures = InputFeatures()  # what the networks compute from an element (default: nothing, as the original)
     bc_start: int = 0  # the first updates clone the batch's expert actions instead of the SAC actor step (0: none)
 
 
@@ -86,8 +87,8 @@ def _optimizers(config: SACConfig):
 def create_agent(key, config: SACConfig = SACConfig()) -> Agent:
     """Freshly initialized networks (weights as the original) and optimizers."""
     actor_key, critic_key = jax.random.split(key)
-    actor_def, actor = nnx.split(Actor(nnx.Rngs(actor_key), squash=config.squash, rotations=config.rotations))
-    critic_def, critic = nnx.split(TwinCritic(nnx.Rngs(critic_key), rotations=config.rotations))
+    actor_def, actor = nnx.split(Actor(nnx.Rngs(actor_key), squash=config.squash, inputs=config.inputs))
+    critic_def, critic = nnx.split(TwinCritic(nnx.Rngs(critic_key), inputs=config.inputs))
     actor_opt, critic_opt, alpha_opt = _optimizers(config)
     log_alpha = jnp.asarray(math.log(config.alpha), jnp.float32)
     return Agent(actor, actor, critic, critic, actor_opt.init(actor), critic_opt.init(critic), log_alpha,

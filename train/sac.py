@@ -35,7 +35,8 @@ Options for teams (each off in ``paper`` and ``cpu``; measured in benchmarks/RES
 ``--collisions restore`` (a training collision puts the colliding arms back, penalized, and
 the episode goes on; evaluation always ends it), ``--expert-share F`` (a fraction F of
 every batch from a separate buffer of expert transitions), ``--rotations 1`` (orientations
-enter the networks as rotation-matrix columns), ``--bc-start N`` (the first N updates clone
+enter the networks as rotation-matrix columns), ``--goal-features 1`` (the networks see each
+end effector's error to its target besides the two poses), ``--bc-start N`` (the first N updates clone
 the expert transitions of each batch, then SAC), ``--expert-prefill M`` (the experts of M
 training tasks replayed into the buffer before the first iteration).
 """
@@ -59,6 +60,7 @@ from mjx_multiarm.env import EVAL_TOLERANCE, EnvConfig, ReachingEnv
 from mjx_multiarm.expert.planner import PlannerConfig
 from mjx_multiarm.expert.precompute import precompute
 from mjx_multiarm.expert.store import ExpertStore
+from mjx_multiarm.observation import InputFeatures
 from mjx_multiarm.policy import policy_env_settings
 from mjx_multiarm.tasks.__main__ import parse_arms
 from mjx_multiarm.tasks.dataset import atomic_write, load_tasks, save_tasks
@@ -101,7 +103,8 @@ class Preset:
     curriculum_by_team: bool = False  # one curriculum level per team size (TrainConfig.curriculum_by_team)
     collisions: str = "end"  # training collisions: "end" the episode (the paper) or "restore" the arm (EnvConfig.end_on_collision)
     expert_share: float = 0.0  # fraction of each batch from a separate expert buffer (TrainConfig.expert_share)
-    rotations: bool = False  # orientations enter the networks as rotation-matrix columns (SACConfig.rotations)
+    rotations: bool = False  # orientations enter the networks as rotation-matrix columns (InputFeatures.rotations)
+    goal_features: bool = False  # the networks see each end effector's error to its target (InputFeatures.goal)
     bc_start: int = 0  # updates of behaviour-cloned start before SAC's actor step (SACConfig.bc_start)
     expert_prefill: int = 0  # expert demonstrations replayed into the buffer before training (Trainer.prefill)
     expert_buffer: int = 50_000  # rows of the separate expert buffer (TrainConfig.expert_buffer)
@@ -180,6 +183,8 @@ def _parser() -> argparse.ArgumentParser:
                         "(default: the preset's; evaluation always ends it)")
     parser.add_argument("--rotations", type=_flag, help="1: the networks see every orientation as two rotation-matrix "
                         "columns (continuous) instead of a sign-canonical quaternion (0, the original; default: the preset's)")
+    parser.add_argument("--goal-features", type=_flag, help="1: the networks see each end effector's position and "
+                        "rotation error to its target besides the two poses (0, the original; default: the preset's)")
     parser.add_argument("--bc-start", type=int, help="the first N updates train the actor by cloning the batch's expert "
                         "transitions (the critics learn meanwhile), then SAC takes over (default: the preset's; 0 = none)")
     parser.add_argument("--expert-prefill", type=int, help="replay the experts of this many random training tasks into "
@@ -233,6 +238,7 @@ def _settings(args) -> dict:
                  "hindsight": args.hindsight, "shaping": args.shaping,
                  "policy_average": args.policy_average, "curriculum_by_team": args.curriculum_by_team,
                  "collisions": args.collisions, "expert_share": args.expert_share, "rotations": args.rotations,
+                 "goal_features": args.goal_features,
                  "bc_start": args.bc_start, "expert_prefill": args.expert_prefill, "expert_buffer": args.expert_buffer}
     preset.update({k: v for k, v in overrides.items() if v is not None})
     preset["arms"] = list(preset["arms"])
@@ -317,7 +323,8 @@ def _train_config(settings: dict) -> TrainConfig:
         sac=SACConfig(squash=standard, learn_alpha=learned, alpha=SACConfig.alpha if learned else alpha,
                       target_entropy=settings.get("target_entropy", SACConfig.target_entropy), gamma=settings.get("gamma", SACConfig.gamma),
                       expert_bc=settings.get("expert_bc", 0.0), policy_average=settings.get("policy_average", 0.0),
-                      rotations=settings.get("rotations", False), bc_start=settings.get("bc_start", 0)),
+                      inputs=InputFeatures(rotations=settings.get("rotations", False), goal=settings.get("goal_features", False)),
+                      bc_start=settings.get("bc_start", 0)),
     )
 
 
@@ -439,7 +446,7 @@ def main(argv=None) -> None:
                 "with_buffer": settings["with_buffer"]}
         checkpoints.save(iteration, state, meta)
         save_policy(run_dir / "policy.npz", state.agent.average_actor, trainer.config.sac.squash, policy_env_settings(env),
-                    {"run_dir": str(run_dir), "settings": settings, **meta}, rotations=trainer.config.sac.rotations)
+                    {"run_dir": str(run_dir), "settings": settings, **meta}, inputs=trainer.config.sac.inputs)
         header = list(rows[0]) if rows else []
         atomic_write(metrics_file, lambda f: f.write((",".join(header) + "\n" + "".join(",".join(str(r[k]) for k in header) + "\n" for r in rows)).encode()))
 
