@@ -121,14 +121,15 @@ PRESETS = {
     "paper": Preset(arms=(1, 2, 3, 4), train_tasks=20_000, eval_tasks=1_000, episode_steps=500, expert_steps=128,
                     num_envs=1024, rollout_steps=16, updates_per_iteration=10, batch_size=4096, buffer_size=50_000,
                     warmup=20_000, expert_replays=64, minutes=10**9, steps=700_000_000),
-    # 1-4-arm teams on a 2-core CPU (issue 19, provisional: the best rung of the ablation ladder
-    # in benchmarks/RESULTS.md "Teams"): the cpu recipe on 100,000 generated tasks with experts
+    # 1-4-arm teams on a 2-core CPU (issue 19: the best rung of the ablation ladder in
+    # benchmarks/RESULTS.md "Teams"): the cpu recipe on 100,000 generated tasks with experts
     # (~5 minutes of precompute), a curriculum per team size, colliding arms restored during
-    # training, a quarter of every batch from a separate expert buffer; 4 hours, resumable.
+    # training, a quarter of every batch from a separate expert buffer, the end effectors'
+    # errors to their targets as network inputs; 4 hours, resumable.
     "team": Preset(arms=(1, 2, 3, 4), train_tasks=100_000, eval_tasks=512, episode_steps=200, expert_steps=64, num_envs=64,
                    rollout_steps=16, updates_per_iteration=16, batch_size=256, buffer_size=50_000, warmup=2_000, expert_replays=8,
                    minutes=240.0, steps=10**10, expert_bc=1.0, hindsight=1, policy_average=5e-4, curriculum_by_team=True,
-                   collisions="restore", expert_share=0.25),
+                   collisions="restore", expert_share=0.25, goal_features=True),
     # For tests and smoke checks: seconds.
     "tiny": Preset(arms=(1,), train_tasks=8, eval_tasks=4, episode_steps=20, expert_steps=48, num_envs=4, rollout_steps=4,
                    updates_per_iteration=2, batch_size=16, buffer_size=2048, warmup=8, expert_replays=2, minutes=1.0, steps=400,
