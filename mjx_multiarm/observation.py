@@ -38,8 +38,9 @@ EE_POSE = slice(19, 26)
 TARGET_POSE_PREV, TARGET_POSE = slice(26, 33), slice(33, 40)
 #: The element's five quaternions (end effector and target at t-1 and t, base).
 QUATERNIONS = (slice(15, 19), slice(22, 26), slice(29, 33), slice(36, 40), slice(103, 107))
-EE_POSITION, EE_QUAT = slice(19, 22), slice(22, 26)
-TARGET_POSITION, TARGET_QUAT = slice(33, 36), slice(36, 40)
+#: Their position and quaternion parts.
+EE_POSITION, EE_QUAT = slice(EE_POSE.start, EE_POSE.start + 3), slice(EE_POSE.start + 3, EE_POSE.stop)
+TARGET_POSITION, TARGET_QUAT = slice(TARGET_POSE.start, TARGET_POSE.start + 3), slice(TARGET_POSE.start + 3, TARGET_POSE.stop)
 #: Goal-error features: 1 cm of position error -> 0.1, and the rotation error (rad, small angles).
 GOAL_POSITION_SCALE = 10.0
 GOAL_FEATURES = 6

@@ -147,7 +147,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--arms", type=parse_arms, help="team sizes of generated tasks, e.g. 1 or 1-4")
     parser.add_argument("--layout", choices=LAYOUTS, default="stratified", help="base placement of generated training tasks: "
                         "stratified over the paper's difficulty bins (default) or as the original code's training tasks "
-                        "(difficulty up to ~0.97); evaluation tasks stay stratified")
+                        "(difficulty up to ~0.99); evaluation tasks stay stratified")
     parser.add_argument("--tasks", type=pathlib.Path, help="training task dataset (.npz) instead of generated tasks")
     parser.add_argument("--experts", type=pathlib.Path, help="expert file of --tasks (planned into the run dir if absent)")
     parser.add_argument("--eval-tasks", type=pathlib.Path, help="evaluation task dataset (default: generated)")

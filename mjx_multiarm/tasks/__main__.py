@@ -91,7 +91,7 @@ def main(argv=None) -> None:
     gen.add_argument("--seed", type=int)
     gen.add_argument("--max-arms", type=int, help="arm slots (default: the largest team)")
     gen.add_argument("--layout", choices=LAYOUTS, help="base placement: stratified over difficulty bins (default) or "
-                     "original (the original code's random walk, difficulty up to ~0.97)")
+                     "original (the original code's random walk, difficulty up to ~0.99)")
     gen.add_argument("--out", type=pathlib.Path, required=True)
     gen.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes (default: all cores)")
     gen.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -5,7 +5,7 @@ For each task of k arms: sample k planar base poses (random yaw, no two bases cl
 evenly (layouts are drawn until the task's difficulty falls in its assigned bin; tasks
 harder than 0.5, beyond the paper's last bin, are rejected); ``layout="original"`` places
 bases as the original code's training tasks were (:func:`sample_bases_original`: a random
-walk, difficulty whatever it comes out, up to ~0.97). Then three collision-free composite configurations,
+walk, difficulty whatever it comes out, up to ~0.99). Then three collision-free composite configurations,
 each from batched damped-least-squares IK toward random end-effector positions inside each
 arm's workspace hemisphere, pulled toward the home configuration. Arms whose IK fails,
 leaves the joint limits, or collides are resampled; a task stuck for ``MAX_ROUNDS`` rounds
