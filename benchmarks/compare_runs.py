@@ -1,11 +1,11 @@
 """Learning curves of several training runs side by side (e.g. two seeds of one recipe).
 
 Reads each run's ``metrics.csv`` (written by ``python -m train.sac`` at every checkpoint)
-and, against training minutes, plots the curriculum level and the training success of the
-latest episodes per team size: one colour per team size, one line style per run. Prints,
-at each of ``--minutes``, every run's environment steps, levels and training success per
-team size (success averaged over the iterations of the preceding ``--window`` minutes, as
-the per-iteration window is noisy).
+and plots, against training minutes (or environment steps: ``--by-steps``), the curriculum
+level and the training success of the latest episodes per team size: one colour per team
+size, one line style per run. Prints, at each of ``--minutes``, every run's environment
+steps, levels and training success per team size (success averaged over the iterations of
+the preceding ``--window`` minutes, as the per-iteration window is noisy).
 
     python benchmarks/compare_runs.py runs/seed0 runs/seed1 --minutes 10,30,60,120 --out curves.png
 """
@@ -61,8 +61,8 @@ def trailing_mean(values: np.ndarray, count: int) -> np.ndarray:
     return (total[index] - total[first]) / (index - first)
 
 
-def plot(runs: dict[str, dict[str, np.ndarray]], path: pathlib.Path) -> None:
-    """Levels and training success per team size against training minutes, one line style per run."""
+def plot(runs: dict[str, dict[str, np.ndarray]], path: pathlib.Path, by_steps: bool = False) -> None:
+    """Levels and training success per team size against training minutes (or env steps), one line style per run."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -71,17 +71,17 @@ def plot(runs: dict[str, dict[str, np.ndarray]], path: pathlib.Path) -> None:
     styles = ["-", "--", ":", "-."]
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
     for index, (name, metrics) in enumerate(runs.items()):
-        minutes, style = metrics["seconds"] / 60.0, styles[index % len(styles)]
+        x, style = metrics["env_steps"] / 1e6 if by_steps else metrics["seconds"] / 60.0, styles[index % len(styles)]
         for colour, team in enumerate(team_sizes(metrics) or [None]):
             suffix = "" if team is None else f"_{team}"
             label = f"{name}" + ("" if team is None else f", {team} arm{'s' if team > 1 else ''}")
-            top.plot(minutes, trailing_mean(metrics[f"window_success{suffix}"], 25), style, color=f"C{colour}", label=label)
-            bottom.plot(minutes, metrics[f"level{suffix}"] + 1, style, color=f"C{colour}")
+            top.plot(x, trailing_mean(metrics[f"window_success{suffix}"], 25), style, color=f"C{colour}", label=label)
+            bottom.plot(x, metrics[f"level{suffix}"] + 1, style, color=f"C{colour}")
     top.set_ylabel("training success (latest episodes,\ncurrent level; smoothed)")
     top.set_ylim(-0.02, 1.02)
     top.legend(loc="lower right", fontsize=7, ncol=2)
     bottom.set_ylabel("curriculum level")
-    bottom.set_xlabel("training minutes")
+    bottom.set_xlabel("million environment steps" if by_steps else "training minutes")
     fig.suptitle("train.sac: " + " vs ".join(runs))
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -94,9 +94,12 @@ def main() -> None:
     parser.add_argument("--minutes", default="10,20,30,60,120", help="comma-separated training minutes to tabulate")
     parser.add_argument("--window", type=float, default=5.0, help="minutes of iterations averaged for training success")
     parser.add_argument("--out", type=pathlib.Path, help="PNG of the curves")
+    parser.add_argument("--by-steps", action="store_true", help="plot against environment steps, not minutes")
     parser.add_argument("--json", action="store_true", help="end with one JSON line")
     args = parser.parse_args()
-    runs = {str(run): read_metrics(run) for run in args.runs}
+    names = [run.name for run in args.runs]
+    names = names if len(set(names)) == len(names) else [str(run) for run in args.runs]
+    runs = {name: read_metrics(run) for name, run in zip(names, args.runs)}
     table = {name: [point for m in args.minutes.split(",") if (point := at_minute(metrics, float(m), args.window))]
              for name, metrics in runs.items()}
     for name, points in table.items():
@@ -106,7 +109,7 @@ def main() -> None:
             success = " ".join(f"{t}:{v:.2f}" for t, v in p["success"].items())
             print(f"  {p['minute']:6.1f} min {p['env_steps']:>11,} steps | levels {levels} | training success {success}")
     if args.out:
-        plot(runs, args.out)
+        plot(runs, args.out, args.by_steps)
         print(f"wrote {args.out}")
     if args.json:
         print(json.dumps(table))
