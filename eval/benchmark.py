@@ -59,12 +59,13 @@ def generated_test_tasks(per_team: int, arms: tuple[int, ...], seed: int) -> Tas
     return concatenate([generate_chunk(spec, c) for c in range(spec.num_chunks)])
 
 
-def load_planner(checkpoint: pathlib.Path | None) -> Planner:
-    """The planner of a policy file, or of a run directory's ``policy.npz``."""
+def load_planner(checkpoint: pathlib.Path | None, neighbour_radius: float | None = None) -> Planner:
+    """The planner of a policy file, or of a run directory's ``policy.npz``; ``neighbour_radius``
+    (m) replaces the radius the file records (0 blinds the policy to its neighbours)."""
     path = SHIPPED_POLICY if checkpoint is None else checkpoint
     if path.is_dir():
         path = path / "policy.npz"
-    return Planner.load(path)
+    return Planner.load(path, neighbour_radius)
 
 
 def policy_outcomes(planner: Planner, tasks: Tasks, dynamic: bool, episode_steps: int, batch: int = 256) -> Outcomes:
@@ -172,6 +173,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--per-team", type=int, default=20, help="generated test set: tasks per team size (default 20)")
     parser.add_argument("--arms", default="1-10", help="generated test set: team sizes (default 1-10)")
     parser.add_argument("--mode", choices=["static", "dynamic", "both"], default="both", help="which tables (default both)")
+    parser.add_argument("--neighbour-radius", type=float, metavar="M",
+                        help="observe neighbour bases within M metres instead of the radius the policy file records "
+                             "(0: the policy sees only its own arm, as the individualistic ablation)")
     parser.add_argument("--episode-steps", type=int, default=500, help="control steps per episode (default 500, the paper's)")
     parser.add_argument("--iterations", type=int, default=PlannerConfig.iterations, help="BiRRT iteration cap per plan")
     parser.add_argument("--seed", type=int, default=0)
@@ -212,7 +216,9 @@ def main(argv=None) -> None:
         else:
             print(f"generating {args.per_team} test tasks per team size {args.arms}...", file=sys.stderr)
             tasks = generated_test_tasks(args.per_team, arms, args.seed + 20_000)
-        planner = load_planner(args.checkpoint) if args.planner == "policy" else None
+        if args.neighbour_radius is not None and args.planner != "policy":
+            raise ValueError("--neighbour-radius applies to --planner policy only")
+        planner = load_planner(args.checkpoint, args.neighbour_radius) if args.planner == "policy" else None
     except (ValueError, FileNotFoundError, argparse.ArgumentTypeError) as error:
         sys.exit(f"error: {error}")
     out = args.out or pathlib.Path("runs") / f"benchmark-{args.planner}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -228,6 +234,8 @@ def main(argv=None) -> None:
             sys.exit(f"error: {args.tasks}: no task has a dynamic mode")
         modes.remove("dynamic")
     report, rows = {"planner": args.planner}, []
+    if planner is not None:
+        report["neighbour_radius"] = planner.env_config.neighbour_radius
     for mode in modes:
         subset = tasks if mode == "static" else take(tasks, tasks.has_dynamic_mode)
         clock = time.perf_counter()

@@ -67,21 +67,24 @@ def policy_env_settings(env: ReachingEnv) -> dict:
 class Planner:
     """Closed-loop planner from a policy file (see the module docstring)."""
 
-    def __init__(self, policy: LoadedPolicy):
+    def __init__(self, policy: LoadedPolicy, neighbour_radius: float | None = None):
+        """``neighbour_radius`` (m) replaces the radius the policy file records (0 blinds the
+        policy to its neighbours, as the individualistic ablation)."""
         self.policy = policy
         env = policy.env
         action_scale = np.asarray(env["action_scale"], np.float64)
         if action_scale.shape != (NUM_JOINTS,):
             raise ValueError(f"policy file: env.action_scale has shape {action_scale.shape}, expected ({NUM_JOINTS},)")
-        #: The environment settings the policy was trained with.
-        self.env_config = EnvConfig(action_scale=tuple(action_scale.tolist()), neighbour_radius=float(env["neighbour_radius"]))
+        #: The environment settings the policy was trained with (or the radius given).
+        radius = float(env["neighbour_radius"]) if neighbour_radius is None else neighbour_radius
+        self.env_config = EnvConfig(action_scale=tuple(action_scale.tolist()), neighbour_radius=radius)
         self._actor_def, self._actor = nnx.split(policy.actor)
         self._compiled: dict = {}
 
     @classmethod
-    def load(cls, path: str | os.PathLike | None = None) -> Planner:
+    def load(cls, path: str | os.PathLike | None = None, neighbour_radius: float | None = None) -> Planner:
         """The planner of policy file ``path`` (default: the shipped policy)."""
-        return cls(load_policy(SHIPPED_POLICY if path is None else path))
+        return cls(load_policy(SHIPPED_POLICY if path is None else path), neighbour_radius)
 
     def environment(self, num_arms: int, **settings) -> ReachingEnv:
         """An environment of ``num_arms`` slots with the policy's action scale and neighbour

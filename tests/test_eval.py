@@ -68,6 +68,27 @@ def test_benchmark_bad_checkpoints(files, tmp_path):
         benchmark.main(["--checkpoint", str(tmp_path / "bad.npz"), "--tasks", str(files / "tasks.npz")])
 
 
+def test_benchmark_neighbour_radius_overrides_the_policy_file(files, tmp_path, capsys):
+    tasks = TaskBank.from_tasks(generate_chunk(GenerationSpec(count=4, arm_counts=(2,), seed=5, max_arms=2), 0), 2).tasks
+    visible = {}
+    for radius in (None, 0.0):  # the file records ReachingEnv(2)'s radius, 1.7 m
+        planner = benchmark.load_planner(files / "policy.npz", radius)
+        start = jax.vmap(lambda task, env=planner.environment(2): env.reset(None, task))(tasks)
+        visible[radius] = np.asarray(start.obs_mask).sum(-1)  # observed arms, per task and arm
+    assert (visible[None] == 2).any() and (visible[0.0] == 1).all()  # neighbours within 1.7 m are seen, then none
+
+    common = ["--checkpoint", str(files / "policy.npz"), "--tasks", str(files / "tasks.npz"), "--episode-steps", "5",
+              "--mode", "static", "--json"]
+    benchmark.main([*common, "--neighbour-radius", "0", "--out", str(tmp_path / "blind")])
+    assert last_json(capsys)["neighbour_radius"] == 0.0
+    benchmark.main([*common, "--out", str(tmp_path / "sighted")])
+    assert last_json(capsys)["neighbour_radius"] == pytest.approx(1.7)
+    with pytest.raises(SystemExit, match="neighbour_radius must be >= 0"):
+        benchmark.main([*common, "--neighbour-radius", "-1"])
+    with pytest.raises(SystemExit, match="--planner policy only"):
+        benchmark.main([*common, "--planner", "birrt", "--neighbour-radius", "0"])
+
+
 def test_latency_cli_reports_percentiles(files):
     out = subprocess.run([sys.executable, "-m", "eval.latency", "--checkpoint", str(files / "policy.npz"), "--calls", "5",
                           "--max-neighbours", "2", "--json"], capture_output=True, text=True, check=True).stdout
