@@ -69,7 +69,7 @@ def test_benchmark_bad_checkpoints(files, tmp_path):
         benchmark.main(["--checkpoint", str(tmp_path / "bad.npz"), "--tasks", str(files / "tasks.npz")])
 
 
-def test_benchmark_neighbour_radius_overrides_the_policy_file(files):
+def test_benchmark_neighbour_radius_overrides_the_policy_file(files, monkeypatch):
     tasks = TaskBank.from_tasks(generate_chunk(GenerationSpec(count=4, arm_counts=(2,), seed=5, max_arms=2), 0), 2).tasks
     visible = {}
     for radius in (None, 0.0):  # the file records ReachingEnv(2)'s radius, 1.7 m
@@ -83,6 +83,15 @@ def test_benchmark_neighbour_radius_overrides_the_policy_file(files):
         benchmark.main([*common, "--neighbour-radius", "-1"])
     with pytest.raises(SystemExit, match="--planner policy only"):
         benchmark.main([*common, "--planner", "birrt", "--neighbour-radius", "0"])
+
+    requested = []  # a radius of 0 is a value, not "unset": it must reach the planner (stopped before any rollout)
+    def record(checkpoint, radius):
+        requested.append(radius)
+        raise ValueError("planner recorded")
+    monkeypatch.setattr(benchmark, "load_planner", record)
+    with pytest.raises(SystemExit, match="planner recorded"):
+        benchmark.main([*common, "--neighbour-radius", "0"])
+    assert requested == [0.0]
 
 
 def test_latency_cli_reports_percentiles(files):
