@@ -2,7 +2,7 @@
 
 Random scenes (one arm: random yaw; two arms: bases 0.3-1.3 m apart, random yaws; joints
 home + N(0, 1 rad) within the limits) are checked by the project's collision model and by
-the exact triangle-mesh reference (:mod:`mjx_multiarm.mesh_reference`, meshes of
+the exact triangle-mesh reference (:mod:`mjx_multiarm.reference.mesh_reference`, meshes of
 ``../shared/reference``). Per kind (between arms, within an arm, ground), a scene is
 
 - a **miss** when the meshes touch (distance 0, or a link below the ground) and the model
@@ -37,11 +37,11 @@ import jax
 import numpy as np
 from core_throughput import cpu_name
 
-from mjx_multiarm.collision import scene_contacts
-from mjx_multiarm.mesh_reference import KINDS, LINKS, MeshReference
-from mjx_multiarm.robot import load_arm
-from mjx_multiarm.scene import build_scene
-from mjx_multiarm.transforms import yaw_quat
+from mjx_multiarm.geometry.collision import scene_contacts
+from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.geometry.scene import build_scene
+from mjx_multiarm.geometry.transforms import yaw_quat
+from mjx_multiarm.reference.mesh_reference import KINDS, LINKS, MeshReference
 
 MESHES = pathlib.Path(__file__).resolve().parents[2] / "shared" / "reference" / "ur5" / "collision"
 BINS_MM = (0.0, 5.0, 20.0, 50.0, np.inf)

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjx_multiarm import build_scene, scene_contacts
-from mjx_multiarm.transforms import yaw_quat
+from mjx_multiarm.geometry.transforms import yaw_quat
 
 
 def _inputs(rng, num_arms, batch):

@@ -3,7 +3,7 @@
 One arm-step is one arm's control step: action clipping, the swept collision check of the
 motion (4 substeps of kinematics + every collision pair the arm takes part in), the targets,
 rewards, termination, and the arm's 107-D neighbour-sequence observation. Environments run
-under :class:`mjx_multiarm.wrappers.AutoReset` (finished episodes restart with tasks drawn
+under :class:`mjx_multiarm.env.wrappers.AutoReset` (finished episodes restart with tasks drawn
 from a device task bank), ``--steps`` steps per jitted ``lax.scan``; compile excluded.
 
     python benchmarks/env_throughput.py --arms 1,4,10 --batch 1,64,1024
@@ -22,13 +22,12 @@ import statistics
 import time
 
 import jax
-import numpy as np
 from core_throughput import add_timing_arguments, cpu_name, selected_device
 
-from mjx_multiarm.env import EnvConfig, ReachingEnv
-from mjx_multiarm.scripted import ik_actions
+from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
+from mjx_multiarm.env.scripted import ik_actions
+from mjx_multiarm.env.wrappers import AutoReset, TaskBank
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
-from mjx_multiarm.wrappers import AutoReset, TaskBank
 
 #: Tasks in the benchmark's bank (sampled uniformly, with replacement).
 BANK_TASKS = 64

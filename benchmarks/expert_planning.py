@@ -22,10 +22,10 @@ import time
 import numpy as np
 from core_throughput import cpu_name
 
+from mjx_multiarm.cli import parse_arms
 from mjx_multiarm.expert.__main__ import report
 from mjx_multiarm.expert.planner import STATUSES, PlannerConfig
 from mjx_multiarm.expert.precompute import precompute
-from mjx_multiarm.tasks.__main__ import parse_arms
 from mjx_multiarm.tasks.dataset import save_tasks
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
 

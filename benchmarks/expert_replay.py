@@ -1,7 +1,7 @@
 """Replay stored experts in the JAX environment: do their steps reach the goals without collision?
 
 Every solved task's delta-joint steps are executed from the task's start in
-:class:`mjx_multiarm.env.ReachingEnv` (static targets, 2 cm / 0.1 rad, swept collision
+:class:`mjx_multiarm.env.reaching.ReachingEnv` (static targets, 2 cm / 0.1 rad, swept collision
 checks); a replay succeeds when the episode ends in success. Batches of tasks run under one
 ``jit`` / ``vmap``.
 
@@ -20,11 +20,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_multiarm.env import EnvConfig, ReachingEnv
+from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
+from mjx_multiarm.env.wrappers import TaskBank, replay_actions
 from mjx_multiarm.expert.store import ExpertStore
 from mjx_multiarm.tasks.dataset import load_tasks
 from mjx_multiarm.tasks.types import take
-from mjx_multiarm.wrappers import TaskBank, replay_actions
 
 BATCH = 128
 #: Replay lengths are padded to a multiple of this (few compiled shapes).

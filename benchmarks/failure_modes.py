@@ -18,12 +18,12 @@ import json
 import jax
 import numpy as np
 
-from mjx_multiarm.env import EVAL_TOLERANCE
-from mjx_multiarm.policy import Planner
+from mjx_multiarm.env.reaching import EVAL_TOLERANCE
+from mjx_multiarm.env.wrappers import TaskBank, make_episodes
+from mjx_multiarm.geometry.transforms import quat_angle
+from mjx_multiarm.planner.policy import Planner
 from mjx_multiarm.tasks.dataset import load_tasks
 from mjx_multiarm.tasks.types import take
-from mjx_multiarm.transforms import quat_angle
-from mjx_multiarm.wrappers import TaskBank, make_episodes
 
 
 def final_errors(planner: Planner, tasks, steps: int) -> dict:

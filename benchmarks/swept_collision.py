@@ -22,9 +22,9 @@ import jax.numpy as jnp
 import numpy as np
 from core_throughput import cpu_name
 
-from mjx_multiarm.collision import scene_contacts
-from mjx_multiarm.env import ReachingEnv
-from mjx_multiarm.transforms import yaw_quat
+from mjx_multiarm.env.reaching import ReachingEnv
+from mjx_multiarm.geometry.collision import scene_contacts
+from mjx_multiarm.geometry.transforms import yaw_quat
 
 
 def measure(samples: int, dense: int, seed: int = 0, batch: int = 8192, substeps: tuple[int, ...] = ()) -> dict:

@@ -16,7 +16,12 @@ import time
 
 import jax
 
-from mjx_multiarm.tasks.generate import CHUNK_SIZE, MODES, GenerationSpec, generate_chunk
+from mjx_multiarm.tasks.generate import (
+    CHUNK_SIZE,
+    MODES,
+    GenerationSpec,
+    generate_chunk,
+)
 
 
 def main(argv=None) -> None:

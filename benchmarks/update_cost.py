@@ -25,11 +25,11 @@ import jax.numpy as jnp
 import numpy as np
 from core_throughput import cpu_name
 
-from mjx_multiarm.env import EnvConfig, ReachingEnv
-from mjx_multiarm.observation import ELEMENT_SIZE
-from mjx_multiarm.tasks.__main__ import parse_arms
+from mjx_multiarm.cli import parse_arms
+from mjx_multiarm.env.observation import ELEMENT_SIZE
+from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
+from mjx_multiarm.env.wrappers import TaskBank
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
-from mjx_multiarm.wrappers import TaskBank
 from train.agent import SACConfig, bc_update, create_agent, sac_update
 from train.replay import Transitions
 from train.trainer import TrainConfig, Trainer

@@ -34,18 +34,32 @@ import time
 import jax
 import numpy as np
 
-from mjx_multiarm.env import EVAL_TOLERANCE, EnvConfig, ReachingEnv
+from mjx_multiarm.cli import Progress, parse_arms
+from mjx_multiarm.env.reaching import EVAL_TOLERANCE, EnvConfig, ReachingEnv
+from mjx_multiarm.env.wrappers import Outcomes, TaskBank, run_episodes
 from mjx_multiarm.expert.planner import SOLVED, PlannerConfig
 from mjx_multiarm.expert.replan import replan_episode
 from mjx_multiarm.expert.solve import solve_task
-from mjx_multiarm.policy import SHIPPED_POLICY, Planner
-from mjx_multiarm.progress import Progress
-from mjx_multiarm.render import RenderingUnavailable, make_renderer, record_episode, render_episode, save_frames, save_video
-from mjx_multiarm.tasks.__main__ import parse_arms
-from mjx_multiarm.tasks.dataset import atomic_write, load_tasks
+from mjx_multiarm.files import atomic_write
+from mjx_multiarm.planner.policy import SHIPPED_POLICY, Planner
+from mjx_multiarm.render import (
+    RenderingUnavailable,
+    make_renderer,
+    record_episode,
+    render_episode,
+    save_frames,
+    save_video,
+)
+from mjx_multiarm.tasks.dataset import load_tasks
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
-from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_index, concatenate, take
-from mjx_multiarm.wrappers import Outcomes, TaskBank, run_episodes
+from mjx_multiarm.tasks.types import (
+    DIFFICULTY_BINS,
+    SPEED_BINS,
+    Tasks,
+    bin_index,
+    concatenate,
+    take,
+)
 
 #: The paper's static success rates (2 cm / 0.1 rad) by team size, all difficulties.
 PAPER_STATIC = {1: 0.988, 2: 0.943, 3: 0.960, 4: 0.951, 5: 0.943, 6: 0.938, 7: 0.918, 8: 0.909, 9: 0.910, 10: 0.905}
@@ -119,7 +133,7 @@ def success_table(outcomes: Outcomes, bins: np.ndarray, names: list[str]) -> dic
 def team_rates(outcomes: Outcomes) -> dict[int, dict[str, float]]:
     """Per team size: tasks, success, collision and timeout rates, and the share of arms
     within tolerance when their episode ended (``arm_reach_rate``), as
-    :meth:`~mjx_multiarm.wrappers.EpisodeStats.summary` counts them."""
+    :meth:`~mjx_multiarm.env.wrappers.EpisodeStats.summary` counts them."""
     by_team = outcomes.stats(int(outcomes.team.max())).summary()["by_team_size"]
     names = ("success_rate", "collision_rate", "timeout_rate", "arm_reach_rate")
     return {size: {"tasks": row["episodes"], **{name: row[name] for name in names}} for size, row in by_team.items()}

@@ -50,7 +50,7 @@ def measure(checkpoint: pathlib.Path | None, neighbours: list[int], calls: int) 
     import numpy as np
 
     from eval.benchmark import load_planner
-    from mjx_multiarm.observation import ELEMENT_SIZE
+    from mjx_multiarm.env.observation import ELEMENT_SIZE
 
     planner = load_planner(checkpoint)
     actor = planner.policy.actor

@@ -27,9 +27,9 @@ def policy_times(planner, tasks, episode_steps: int):
     import jax
     import numpy as np
 
-    from mjx_multiarm.env import EVAL_TOLERANCE
+    from mjx_multiarm.env.reaching import EVAL_TOLERANCE
+    from mjx_multiarm.env.wrappers import TaskBank
     from mjx_multiarm.tasks.types import take
-    from mjx_multiarm.wrappers import TaskBank
 
     seconds, success = np.zeros(tasks.num_tasks), np.zeros(tasks.num_tasks, bool)
     for size in sorted(set(tasks.num_arms.tolist())):
@@ -57,7 +57,7 @@ def plot(table: dict, path: pathlib.Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from mjx_multiarm.tasks.dataset import atomic_write
+    from mjx_multiarm.files import atomic_write
 
     sizes = sorted(table)
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -97,9 +97,10 @@ def main(argv=None) -> None:
         import numpy as np
 
         from eval.benchmark import birrt_outcomes, generated_test_tasks, load_planner
+        from mjx_multiarm.cli import parse_arms
         from mjx_multiarm.expert.planner import PlannerConfig
-        from mjx_multiarm.tasks.__main__ import parse_arms
-        from mjx_multiarm.tasks.dataset import atomic_write, load_tasks
+        from mjx_multiarm.files import atomic_write
+        from mjx_multiarm.tasks.dataset import load_tasks
 
         tasks = load_tasks(args.tasks)[0] if args.tasks else generated_test_tasks(args.per_team, parse_arms(args.arms), args.seed + 30_000)
         planner = load_planner(args.checkpoint)

@@ -8,14 +8,20 @@ Public entry points:
   JAX functions (jit/vmap-able) behind it.
 - :class:`Planner`: a trained policy as a closed-loop planner (numpy in/out, or batched JAX).
 - :class:`ReachingEnv`, :class:`EnvConfig`: the multi-arm reaching environment
-  (``reset``/``step``); batching helpers in :mod:`mjx_multiarm.wrappers`.
+  (``reset``/``step``); batching helpers in :mod:`mjx_multiarm.env.wrappers`.
 """
 
-from mjx_multiarm.api import ArmEvaluation, evaluate_arms
-from mjx_multiarm.collision import Contacts, num_substeps, scene_contacts, swept_contacts
-from mjx_multiarm.env import EnvConfig, ReachingEnv
-from mjx_multiarm.kinematics import ArmFrames, forward_kinematics
-from mjx_multiarm.scene import Scene, build_scene
+from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
+from mjx_multiarm.geometry.collision import (
+    Contacts,
+    num_substeps,
+    scene_contacts,
+    swept_contacts,
+)
+from mjx_multiarm.geometry.evaluate import ArmEvaluation, evaluate_arms
+from mjx_multiarm.geometry.kinematics import ArmFrames, forward_kinematics
+from mjx_multiarm.geometry.scene import Scene, build_scene
+from mjx_multiarm.planner.policy import PlannedPath, Planner
 
 __all__ = [
     "ArmEvaluation",
@@ -33,13 +39,3 @@ __all__ = [
     "scene_contacts",
     "swept_contacts",
 ]
-
-
-def __getattr__(name: str):
-    # The planner needs the networks (models/), which import this package's modules:
-    # load it on first use to keep the import graph acyclic.
-    if name in ("Planner", "PlannedPath"):
-        from mjx_multiarm import policy
-
-        return getattr(policy, name)
-    raise AttributeError(f"module 'mjx_multiarm' has no attribute {name!r}")

@@ -2,7 +2,7 @@
 
 Until ``python -m train.sac`` exists this is the project's main job. It generates static
 tasks (1-4 arms by default), runs every task as one environment of a vectorized batch with
-the damped-least-squares IK controller of :mod:`mjx_multiarm.scripted` (each arm reaches for
+the damped-least-squares IK controller of :mod:`mjx_multiarm.env.scripted` (each arm reaches for
 its own target and ignores the others), and prints success, collision and timeout rates per
 team size, and the environment's throughput. The controller is a sanity baseline: it solves
 most single-arm tasks and fails more often as teams get crowded, which is what a learned
@@ -19,11 +19,11 @@ import time
 import jax
 import numpy as np
 
-from mjx_multiarm.env import EnvConfig, ReachingEnv
-from mjx_multiarm.scripted import ik_actions
-from mjx_multiarm.tasks.__main__ import parse_arms
+from mjx_multiarm.cli import parse_arms
+from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
+from mjx_multiarm.env.scripted import ik_actions
+from mjx_multiarm.env.wrappers import EpisodeStats, TaskBank, make_episodes
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
-from mjx_multiarm.wrappers import EpisodeStats, TaskBank, make_episodes
 
 
 def main(argv=None) -> None:

@@ -22,10 +22,10 @@ import mujoco
 import numpy as np
 from flax import struct
 
-from mjx_multiarm.env import ReachingEnv
-from mjx_multiarm.scene import set_mujoco_state
+from mjx_multiarm.env.reaching import ReachingEnv
+from mjx_multiarm.geometry.scene import set_mujoco_state
+from mjx_multiarm.geometry.transforms import quat_to_mat
 from mjx_multiarm.tasks.types import Tasks
-from mjx_multiarm.transforms import quat_to_mat
 
 #: Arm colours (RGBA), cycled over the arms of a team.
 COLOURS = np.array([[0.90, 0.30, 0.25, 1], [0.25, 0.55, 0.90, 1], [0.30, 0.75, 0.35, 1], [0.95, 0.65, 0.20, 1],
@@ -52,7 +52,7 @@ class Trajectory:
 
 def record_episode(env: ReachingEnv, policy, params, task: Tasks, steps: int | None = None) -> Trajectory:
     """Run one task (a device task row, e.g. ``bank.take(i)`` unbatched) with
-    ``policy(states, params)`` (as :func:`mjx_multiarm.wrappers.make_episodes`) and keep
+    ``policy(states, params)`` (as :func:`mjx_multiarm.env.wrappers.make_episodes`) and keep
     every step until the episode ends."""
     steps = env.config.max_steps if steps is None else steps
 

@@ -2,7 +2,7 @@
 
 Every arm is evaluated by the same networks on its own observation: the sequence of 107-D
 elements of the arms it sees (masked elements first, itself last; see
-:mod:`mjx_multiarm.observation`). One forward pass takes any leading batch dims
+:mod:`mjx_multiarm.env.observation`). One forward pass takes any leading batch dims
 (environments, arms), so all arms of all environments go through at once.
 
 - :class:`SequenceEncoder`: a one-layer LSTM (107 -> 256, zero initial state) over the
@@ -24,19 +24,26 @@ Linear layers start as PyTorch's (and the original's): weights uniform in
 from __future__ import annotations
 
 import math
+from typing import Protocol
 
 import jax
 import jax.numpy as jnp
 from flax import nnx
-
-from mjx_multiarm.observation import InputFeatures
-from mjx_multiarm.robot import NUM_JOINTS
 
 HIDDEN = 256
 MLP_LAYERS = (128, 64)
 #: The original's bounds on the action variance.
 VARIANCE_BOUNDS = (1e-8, 0.1)
 LOG_STD_BOUNDS = (-20.0, 2.0)
+
+
+class ElementFeatures(Protocol):
+    """What the encoder computes from each observation element before its LSTM: ``size``
+    numbers per element (the library's :class:`mjx_multiarm.env.observation.InputFeatures`)."""
+
+    size: int
+
+    def __call__(self, obs): ...
 
 
 def _linear(inputs: int, outputs: int, rngs: nnx.Rngs) -> nnx.Linear:
@@ -47,10 +54,9 @@ def _linear(inputs: int, outputs: int, rngs: nnx.Rngs) -> nnx.Linear:
 class SequenceEncoder(nnx.Module):
     """LSTM encoding of a masked observation sequence: [..., L, 107], [..., L] -> [..., 256].
 
-    ``inputs`` says what the LSTM sees of each element (default: the element itself; see
-    :class:`~mjx_multiarm.observation.InputFeatures`)."""
+    ``inputs`` says what the LSTM sees of each element (:class:`ElementFeatures`)."""
 
-    def __init__(self, rngs: nnx.Rngs, hidden: int = HIDDEN, inputs: InputFeatures = InputFeatures()):
+    def __init__(self, rngs: nnx.Rngs, inputs: ElementFeatures, hidden: int = HIDDEN):
         self.hidden, self.inputs = hidden, inputs
         self.cell = nnx.OptimizedLSTMCell(inputs.size, hidden, rngs=rngs)
 
@@ -89,10 +95,10 @@ class MLP(nnx.Module):
 class Actor(nnx.Module):
     """Gaussian policy over delta-joint actions."""
 
-    def __init__(self, rngs: nnx.Rngs, squash: bool = False, inputs: InputFeatures = InputFeatures()):
+    def __init__(self, rngs: nnx.Rngs, inputs: ElementFeatures, actions: int, squash: bool = False):
         self.squash = squash
-        self.encoder = SequenceEncoder(rngs, inputs=inputs)
-        self.head = MLP((HIDDEN, *MLP_LAYERS, 2 * NUM_JOINTS), rngs, final_tanh=not squash)
+        self.encoder = SequenceEncoder(rngs, inputs)
+        self.head = MLP((HIDDEN, *MLP_LAYERS, 2 * actions), rngs, final_tanh=not squash)
 
     def distribution(self, obs, mask, std_scale=1.0):
         """(mean [..., 6], log-std [..., 6]).
@@ -135,9 +141,9 @@ class Actor(nnx.Module):
 class Critic(nnx.Module):
     """Q(observation, action) -> [...]."""
 
-    def __init__(self, rngs: nnx.Rngs, inputs: InputFeatures = InputFeatures()):
-        self.encoder = SequenceEncoder(rngs, inputs=inputs)
-        self.head = MLP((HIDDEN + NUM_JOINTS, *MLP_LAYERS, 1), rngs, final_tanh=False)
+    def __init__(self, rngs: nnx.Rngs, inputs: ElementFeatures, actions: int):
+        self.encoder = SequenceEncoder(rngs, inputs)
+        self.head = MLP((HIDDEN + actions, *MLP_LAYERS, 1), rngs, final_tanh=False)
 
     def __call__(self, obs, mask, action):
         return self.value(self.encoder(obs, mask), action)
@@ -150,8 +156,8 @@ class Critic(nnx.Module):
 class TwinCritic(nnx.Module):
     """Two independent critics: (q1, q2)."""
 
-    def __init__(self, rngs: nnx.Rngs, inputs: InputFeatures = InputFeatures()):
-        self.q1, self.q2 = Critic(rngs, inputs), Critic(rngs, inputs)
+    def __init__(self, rngs: nnx.Rngs, inputs: ElementFeatures, actions: int):
+        self.q1, self.q2 = Critic(rngs, inputs, actions), Critic(rngs, inputs, actions)
 
     def __call__(self, obs, mask, action):
         return self.values(self.encode(obs, mask), action)

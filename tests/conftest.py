@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import settings
 
-from mjx_multiarm.robot import load_arm
+from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
 
 # No per-example deadline for property tests: eager JAX compiles on the first call of each

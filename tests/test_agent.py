@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from train.agent import SACConfig, bc_update, create_agent, critic_loss, expert_bc_loss, sac_update, td_target
+from train.agent import (
+    SACConfig,
+    bc_update,
+    create_agent,
+    critic_loss,
+    expert_bc_loss,
+    sac_update,
+    td_target,
+)
 from train.replay import ReplayBuffer, Transitions
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mjx_multiarm import evaluate_arms
-from mjx_multiarm.robot import load_arm
+from mjx_multiarm.geometry.robot import load_arm
 
 
 def test_planar_and_full_base_poses_agree():

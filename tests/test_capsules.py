@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mjx_multiarm import capsule_fit
-from mjx_multiarm.robot import load_arm
+from mjx_multiarm.geometry.robot import load_arm
+
 
 def _link_capsules(link: str):
     arm = load_arm()

@@ -7,14 +7,20 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from conftest import random_padded_scenes
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import random_padded_scenes
-from mjx_multiarm import evaluate_arms, forward_kinematics, num_substeps, scene_contacts, swept_contacts
-from mjx_multiarm.collision import frame_contacts
-from mjx_multiarm.api import base_pose_arrays
-from mjx_multiarm.scene import build_scene, set_mujoco_state
+from mjx_multiarm import (
+    evaluate_arms,
+    forward_kinematics,
+    num_substeps,
+    scene_contacts,
+    swept_contacts,
+)
+from mjx_multiarm.geometry.collision import frame_contacts
+from mjx_multiarm.geometry.evaluate import base_pose_arrays
+from mjx_multiarm.geometry.scene import build_scene, set_mujoco_state
 
 MAX_ARMS = 10
 

@@ -6,18 +6,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from conftest import random_joints
-from mjx_multiarm.api import base_pose_arrays
-from mjx_multiarm.collision import scene_contacts
-from mjx_multiarm.env import CONTROL_PERIOD, EnvConfig, ReachingEnv
-from mjx_multiarm.ik import solve_positions
-from mjx_multiarm.kinematics import forward_kinematics
-from mjx_multiarm.robot import load_arm
-from mjx_multiarm.scripted import ik_actions
+
+from mjx_multiarm.env.reaching import CONTROL_PERIOD, EnvConfig, ReachingEnv
+from mjx_multiarm.env.scripted import ik_actions
+from mjx_multiarm.env.wrappers import AutoReset, TaskBank, replay_actions
+from mjx_multiarm.geometry.collision import scene_contacts
+from mjx_multiarm.geometry.evaluate import base_pose_arrays
+from mjx_multiarm.geometry.ik import solve_positions
+from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.geometry.transforms import quat_mul, yaw_quat
 from mjx_multiarm.tasks.types import Tasks, take, with_slots
-from mjx_multiarm.transforms import quat_mul, yaw_quat
-from mjx_multiarm.wrappers import AutoReset, TaskBank, replay_actions
 
 
 def teams_of(tasks: Tasks, arms: int, slots: int) -> TaskBank:

@@ -12,21 +12,23 @@ import pytest
 from flax import nnx
 
 from eval import benchmark
-from models.networks import Actor
-from models.policy_file import save_policy
 from mjx_multiarm import Planner
-from mjx_multiarm.policy import policy_env_settings
-from mjx_multiarm.env import ReachingEnv
+from mjx_multiarm.env.observation import InputFeatures
+from mjx_multiarm.env.reaching import ReachingEnv
+from mjx_multiarm.env.wrappers import TaskBank
+from mjx_multiarm.geometry.robot import NUM_JOINTS
+from mjx_multiarm.planner.policy import policy_env_settings
+from mjx_multiarm.planner.policy_file import save_policy
 from mjx_multiarm.render import RenderingUnavailable, record_episode, render_episode
 from mjx_multiarm.tasks.dataset import save_tasks
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
-from mjx_multiarm.wrappers import TaskBank
+from models.networks import Actor
 
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
     root = tmp_path_factory.mktemp("eval")
-    save_policy(root / "policy.npz", nnx.state(Actor(nnx.Rngs(1))), False, policy_env_settings(ReachingEnv(2)))
+    save_policy(root / "policy.npz", nnx.state(Actor(nnx.Rngs(1), InputFeatures(), NUM_JOINTS)), False, policy_env_settings(ReachingEnv(2)))
     tasks = generate_chunk(GenerationSpec(count=4, arm_counts=(1, 2), mode="dynamic", seed=3, max_arms=2), 0)
     save_tasks(root / "tasks.npz", tasks)
     return root

@@ -9,12 +9,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import random_joints
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import random_joints
-from mjx_multiarm.api import evaluate_arms
-from mjx_multiarm.env import EnvConfig, ReachingEnv, step_limits
+from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv, step_limits
+from mjx_multiarm.env.wrappers import TaskBank, replay_actions
 from mjx_multiarm.expert import __main__ as cli
 from mjx_multiarm.expert import precompute as precompute_module
 from mjx_multiarm.expert.decimate import corner_points, path_to_deltas
@@ -22,11 +22,16 @@ from mjx_multiarm.expert.planner import STATUSES, PlannerConfig
 from mjx_multiarm.expert.precompute import precompute
 from mjx_multiarm.expert.replan import replan_episode
 from mjx_multiarm.expert.solve import solve_task
-from mjx_multiarm.expert.store import ExpertStore, ExpertTable, merge_experts, save_experts
-from mjx_multiarm.robot import load_arm
+from mjx_multiarm.expert.store import (
+    ExpertStore,
+    ExpertTable,
+    merge_experts,
+    save_experts,
+)
+from mjx_multiarm.geometry.evaluate import evaluate_arms
+from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.tasks.dataset import save_tasks
 from mjx_multiarm.tasks.types import take, with_slots
-from mjx_multiarm.wrappers import TaskBank, replay_actions
 
 MAX_STEP, SUBSTEPS = step_limits(load_arm())
 

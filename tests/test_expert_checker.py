@@ -6,11 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mjx_multiarm.collision import scene_contacts
 from mjx_multiarm.expert.checker import CollisionChecker
-from mjx_multiarm.robot import load_arm
-from mjx_multiarm.scene import build_scene
-from mjx_multiarm.transforms import yaw_quat
+from mjx_multiarm.geometry.collision import scene_contacts
+from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.geometry.scene import build_scene
+from mjx_multiarm.geometry.transforms import yaw_quat
 
 ARM = load_arm()
 

@@ -7,8 +7,15 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mjx_multiarm.collision import segment_distance
-from mjx_multiarm.transforms import axis_angle_quat, quat_angle, quat_mul, quat_to_mat, wxyz_to_xyzw, xyzw_to_wxyz
+from mjx_multiarm.geometry.collision import segment_distance
+from mjx_multiarm.geometry.transforms import (
+    axis_angle_quat,
+    quat_angle,
+    quat_mul,
+    quat_to_mat,
+    wxyz_to_xyzw,
+    xyzw_to_wxyz,
+)
 
 coordinate = st.floats(-1.0, 1.0, allow_nan=False, width=32)
 point = st.tuples(coordinate, coordinate, coordinate).map(np.array)

@@ -8,12 +8,12 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-
 from conftest import random_bases
+
 from mjx_multiarm import evaluate_arms, forward_kinematics
-from mjx_multiarm.robot import load_arm
-from mjx_multiarm.scene import build_scene, set_mujoco_state
-from mjx_multiarm.transforms import quat_to_mat, yaw_quat
+from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.geometry.scene import build_scene, set_mujoco_state
+from mjx_multiarm.geometry.transforms import quat_to_mat, yaw_quat
 
 # UR5 joint origins (xyz, rpy) and axes, parent -> child, as published for the UR5
 # (DESIGN.md "Robot"); written here independently of the project's MJCF.

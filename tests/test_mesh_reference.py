@@ -1,7 +1,7 @@
 """The collision model against exact mesh distances (needs ../shared/reference and coal).
 
 The reference poses the UR5 collision meshes with MuJoCo C and measures exact triangle-mesh
-distances (``mjx_multiarm.mesh_reference``). The model must enclose the meshes (no mesh
+distances (``mjx_multiarm.reference.mesh_reference``). The model must enclose the meshes (no mesh
 contact unflagged in the pairs it checks), and every non-adjacent pair it leaves out must be
 one the meshes never touch, or touch only where the model flags the arm anyway.
 """
@@ -9,17 +9,23 @@ one the meshes never touch, or touch only where the model flags the arm anyway.
 from __future__ import annotations
 
 import itertools
-import sys
 import pathlib
+import sys
 
 import numpy as np
 import pytest
 
-from mjx_multiarm.mesh_reference import LINKS, SELF_PAIRS, MeshReference
-from mjx_multiarm.scene import build_scene
+from mjx_multiarm.geometry.scene import build_scene
+from mjx_multiarm.reference.mesh_reference import LINKS, SELF_PAIRS, MeshReference
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
-from collision_accuracy import checked_self_links, mesh_distances, model_distances, random_scenes, summarize  # noqa: E402
+from collision_accuracy import (  # noqa: E402
+    checked_self_links,
+    mesh_distances,
+    model_distances,
+    random_scenes,
+    summarize,
+)
 
 pytest.importorskip("coal")
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])

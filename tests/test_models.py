@@ -9,6 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
+from mjx_multiarm.env.observation import InputFeatures
+from mjx_multiarm.geometry.robot import NUM_JOINTS
 from models.networks import VARIANCE_BOUNDS, Actor, SequenceEncoder, TwinCritic
 
 
@@ -20,7 +22,7 @@ def _sequences(key, batch, length, valid):
 
 
 def test_padding_never_changes_the_encoding():
-    encoder = SequenceEncoder(nnx.Rngs(0))
+    encoder = SequenceEncoder(nnx.Rngs(0), InputFeatures())
     obs, mask = _sequences(jax.random.key(1), 3, 10, 4)
     garbage = obs.at[:, :6].set(1e3)  # masked elements hold anything
     np.testing.assert_array_equal(encoder(garbage, mask), encoder(obs, mask))
@@ -31,7 +33,7 @@ def test_padding_never_changes_the_encoding():
 
 def test_encoder_equals_flax_lstm_cell_from_the_zero_state():
     """The first element's skipped hidden matmul changes no value and no gradient."""
-    encoder = SequenceEncoder(nnx.Rngs(0))
+    encoder = SequenceEncoder(nnx.Rngs(0), InputFeatures())
     obs, mask = _sequences(jax.random.key(2), 5, 4, 3)
     mask = mask.at[0].set(True).at[1].set(jnp.array([False, False, False, True]))  # 4, 3 and 1 real elements
 
@@ -49,7 +51,7 @@ def test_encoder_equals_flax_lstm_cell_from_the_zero_state():
 
 
 def test_actor_and_critic_shapes_and_any_leading_dims():
-    actor, critic = Actor(nnx.Rngs(0)), TwinCritic(nnx.Rngs(1))
+    actor, critic = Actor(nnx.Rngs(0), InputFeatures(), NUM_JOINTS), TwinCritic(nnx.Rngs(1), InputFeatures(), NUM_JOINTS)
     obs = jax.random.normal(jax.random.key(0), (2, 5, 4, 4, 107))  # [devices?, envs, arms, seq, 107]
     mask = jnp.ones((2, 5, 4, 4), bool)
     action, log_prob = actor(obs, mask, jax.random.key(2))
@@ -61,7 +63,7 @@ def test_actor_and_critic_shapes_and_any_leading_dims():
 
 
 def test_log_probabilities_match_the_gaussian():
-    actor = Actor(nnx.Rngs(0))
+    actor = Actor(nnx.Rngs(0), InputFeatures(), NUM_JOINTS)
     obs, mask = _sequences(jax.random.key(3), 4, 3, 3)
     action, log_prob = actor(obs, mask, jax.random.key(4))
     np.testing.assert_allclose(actor.log_prob(obs, mask, action), log_prob, rtol=1e-4, atol=1e-4)
@@ -70,13 +72,13 @@ def test_log_probabilities_match_the_gaussian():
     assert np.all(variance >= VARIANCE_BOUNDS[0] * (1 - 1e-4)) and np.all(variance <= VARIANCE_BOUNDS[1] * (1 + 1e-4))
     expected = -0.5 * ((action - mean) ** 2 / variance).sum(-1) - 0.5 * np.log(variance).sum(-1) - 3 * math.log(2 * math.pi)
     np.testing.assert_allclose(log_prob, expected, rtol=1e-4, atol=1e-3)
-    squashed = Actor(nnx.Rngs(0), squash=True)
+    squashed = Actor(nnx.Rngs(0), InputFeatures(), NUM_JOINTS, squash=True)
     sample, _ = squashed(obs, mask, jax.random.key(5))
     assert np.all(np.abs(sample) < 1.0)
 
 
 def test_noise_schedule_shrinks_the_standard_deviation_bound():
-    actor = Actor(nnx.Rngs(0))
+    actor = Actor(nnx.Rngs(0), InputFeatures(), NUM_JOINTS)
     obs, mask = _sequences(jax.random.key(3), 4, 3, 3)
     mean, log_std = actor.distribution(obs, mask)
     narrow_mean, narrow_log_std = actor.distribution(obs, mask, std_scale=0.2)
@@ -93,8 +95,12 @@ def test_rotation_features_are_continuous_and_blind_to_the_quaternion_sign():
     """Each quaternion of an element becomes the first two columns of its rotation matrix:
     q and -q give the same features (a sign-canonical quaternion flips at w = 0), every
     other component passes through in order, and the actor accepts the 107-D elements."""
-    from mjx_multiarm.observation import QUATERNIONS, InputFeatures, rotation_features
-    from mjx_multiarm.transforms import quat_to_mat
+    from mjx_multiarm.env.observation import (
+        QUATERNIONS,
+        InputFeatures,
+        rotation_features,
+    )
+    from mjx_multiarm.geometry.transforms import quat_to_mat
 
     rng = np.random.default_rng(0)
     obs = rng.normal(size=(6, 3, 107)).astype(np.float32)
@@ -118,7 +124,7 @@ def test_rotation_features_are_continuous_and_blind_to_the_quaternion_sign():
     for i, quat in enumerate(QUATERNIONS):
         passthrough[quat.start + 2 * i : quat.start + 2 * i + 6] = False
     np.testing.assert_array_equal(features[..., passthrough], obs[..., kept])
-    mean, _ = Actor(nnx.Rngs(0), inputs=InputFeatures(rotations=True))(jnp.asarray(obs), jnp.ones((6, 3), bool))
+    mean, _ = Actor(nnx.Rngs(0), InputFeatures(rotations=True), NUM_JOINTS)(jnp.asarray(obs), jnp.ones((6, 3), bool))
     assert mean.shape == (6, 6) and np.isfinite(np.asarray(mean)).all()
 
 
@@ -126,8 +132,15 @@ def test_goal_features_are_the_end_effector_error_to_its_target():
     """Position error scaled to 0.1 per cm, rotation error as a rotation vector in the end
     effector's frame (exact direction, small-angle magnitude), blind to quaternion signs;
     appended after the element (or its rotation features)."""
-    from mjx_multiarm.observation import EE_POSITION, EE_QUAT, TARGET_POSITION, TARGET_QUAT, InputFeatures, goal_features
-    from mjx_multiarm.transforms import quat_mul
+    from mjx_multiarm.env.observation import (
+        EE_POSITION,
+        EE_QUAT,
+        TARGET_POSITION,
+        TARGET_QUAT,
+        InputFeatures,
+        goal_features,
+    )
+    from mjx_multiarm.geometry.transforms import quat_mul
 
     rng = np.random.default_rng(1)
     obs = rng.normal(size=(5, 107)).astype(np.float32)
@@ -147,5 +160,5 @@ def test_goal_features_are_the_end_effector_error_to_its_target():
     both = np.asarray(InputFeatures(rotations=True, goal=True)(jnp.asarray(obs)))
     assert both.shape == (5, 123) and InputFeatures(goal=True).size == 113
     np.testing.assert_array_equal(both[:, -6:], features)
-    mean, _ = Actor(nnx.Rngs(0), inputs=InputFeatures(goal=True))(jnp.asarray(obs[:, None]), jnp.ones((5, 1), bool))
+    mean, _ = Actor(nnx.Rngs(0), InputFeatures(goal=True), NUM_JOINTS)(jnp.asarray(obs[:, None]), jnp.ones((5, 1), bool))
     assert mean.shape == (5, 6) and np.isfinite(np.asarray(mean)).all()

@@ -5,13 +5,13 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from conftest import random_bases, random_joints
-from mjx_multiarm.api import base_pose_arrays
-from mjx_multiarm.kinematics import forward_kinematics
-from mjx_multiarm.observation import ELEMENT_SIZE, ArmSnapshot, observe
-from mjx_multiarm.robot import load_arm
-from mjx_multiarm.transforms import quat_conjugate, quat_mul
+
+from mjx_multiarm.env.observation import ELEMENT_SIZE, ArmSnapshot, observe
+from mjx_multiarm.geometry.evaluate import base_pose_arrays
+from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.geometry.transforms import quat_conjugate, quat_mul
 
 
 def _snapshot(bases, joints, targets_joints):

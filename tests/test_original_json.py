@@ -7,8 +7,8 @@ import re
 
 import numpy as np
 import pytest
-
 from conftest import random_joints, random_padded_scenes
+
 from mjx_multiarm import evaluate_arms
 from mjx_multiarm.tasks.difficulty import task_difficulty
 from mjx_multiarm.tasks.original_json import export_tasks, import_tasks, read_task_file

@@ -8,27 +8,28 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from models.networks import Actor, Critic
-from models.policy_file import load_policy, save_policy
 from mjx_multiarm import Planner, evaluate_arms
-from mjx_multiarm.policy import policy_env_settings
-from mjx_multiarm.env import ReachingEnv
-from mjx_multiarm.observation import InputFeatures
+from mjx_multiarm.env.observation import InputFeatures
+from mjx_multiarm.env.reaching import ReachingEnv
+from mjx_multiarm.env.wrappers import TaskBank
+from mjx_multiarm.geometry.robot import NUM_JOINTS
+from mjx_multiarm.geometry.transforms import wxyz_to_xyzw
+from mjx_multiarm.planner.policy import policy_env_settings
+from mjx_multiarm.planner.policy_file import load_policy, save_policy
 from mjx_multiarm.tasks.types import take, with_slots
-from mjx_multiarm.transforms import wxyz_to_xyzw
-from mjx_multiarm.wrappers import TaskBank
+from models.networks import Actor, Critic
 
 
 @pytest.fixture(scope="module")
 def policy_path(tmp_path_factory):
     path = tmp_path_factory.mktemp("policy") / "policy.npz"
-    save_policy(path, nnx.state(Actor(nnx.Rngs(3))), False, policy_env_settings(ReachingEnv(3)), {"note": "random weights"})
+    save_policy(path, nnx.state(Actor(nnx.Rngs(3), InputFeatures(), NUM_JOINTS)), False, policy_env_settings(ReachingEnv(3)), {"note": "random weights"})
     return path
 
 
 def test_round_trip_gives_the_same_actor(policy_path):
     loaded = load_policy(policy_path)
-    original = Actor(nnx.Rngs(3))
+    original = Actor(nnx.Rngs(3), InputFeatures(), NUM_JOINTS)
     obs = np.random.default_rng(0).normal(size=(5, 3, 107)).astype(np.float32)
     mask = np.array([[False, True, True]] * 5)
     np.testing.assert_array_equal(np.asarray(loaded.actor(obs, mask)[0]), np.asarray(original(obs, mask)[0]))
@@ -40,14 +41,14 @@ def test_round_trip_of_actors_with_input_features(tmp_path, inputs):
     """An actor with input features comes back with them (they are in the file), and a
     plain actor's file is not read as one."""
     path = tmp_path / "features.npz"
-    original = Actor(nnx.Rngs(4), inputs=inputs)
+    original = Actor(nnx.Rngs(4), inputs, NUM_JOINTS)
     save_policy(path, nnx.state(original), False, policy_env_settings(ReachingEnv(2)), inputs=inputs)
     loaded = load_policy(path)
     obs = np.random.default_rng(1).normal(size=(4, 2, 107)).astype(np.float32)
     mask = np.ones((4, 2), bool)
     assert loaded.actor.encoder.inputs == inputs
     np.testing.assert_array_equal(np.asarray(loaded.actor(obs, mask)[0]), np.asarray(original(obs, mask)[0]))
-    save_policy(tmp_path / "mislabelled.npz", nnx.state(Actor(nnx.Rngs(4))), False, {}, inputs=inputs)
+    save_policy(tmp_path / "mislabelled.npz", nnx.state(Actor(nnx.Rngs(4), InputFeatures(), NUM_JOINTS)), False, {}, inputs=inputs)
     with pytest.raises(ValueError, match="another architecture"):
         load_policy(tmp_path / "mislabelled.npz")
 
@@ -73,7 +74,7 @@ def test_bad_policy_files_fail_clearly(policy_path, tmp_path):
     with pytest.raises(ValueError, match="checksum mismatch"):
         load_policy(tmp_path / "altered.npz")
     # another architecture (a critic's parameters under a valid header)
-    save_policy(tmp_path / "critic.npz", nnx.state(Critic(nnx.Rngs(0))), False, {})
+    save_policy(tmp_path / "critic.npz", nnx.state(Critic(nnx.Rngs(0), InputFeatures(), NUM_JOINTS)), False, {})
     with pytest.raises(ValueError, match=r"head/layers/0/kernel has shape \[262, 128\], this actor expects \[256, 128\]"):
         load_policy(tmp_path / "critic.npz")
 

@@ -12,7 +12,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from mjx_multiarm.collision import box_box_distance, segment_box_distance
+from mjx_multiarm.geometry.collision import box_box_distance, segment_box_distance
 
 HALF_A = np.array([0.07, 0.06, 0.04])  # the gripper stand-in box
 HALF_B = np.array([0.05, 0.02, 0.09])

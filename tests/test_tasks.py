@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from mjx_multiarm import scene_contacts
-from mjx_multiarm.ik import solve_positions
-from mjx_multiarm.kinematics import forward_kinematics
-from mjx_multiarm.robot import REACH, load_arm
-from mjx_multiarm.scene import build_scene
+from mjx_multiarm.geometry.ik import solve_positions
+from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.robot import REACH, load_arm
+from mjx_multiarm.geometry.scene import build_scene
 from mjx_multiarm.tasks import __main__ as cli
-from mjx_multiarm.tasks import load_tasks, save_tasks, task_difficulty
 from mjx_multiarm.tasks import generate as generation
+from mjx_multiarm.tasks import load_tasks, save_tasks, task_difficulty
 from mjx_multiarm.tasks.generate import (
     MIN_BASE_SPACING,
     ORIGINAL_MAX_OFFSET,

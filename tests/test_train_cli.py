@@ -10,8 +10,8 @@ import orbax.checkpoint as ocp
 import pytest
 from flax import nnx
 
-from models.policy_file import load_policy
-from mjx_multiarm.observation import InputFeatures
+from mjx_multiarm.env.observation import InputFeatures
+from mjx_multiarm.planner.policy_file import load_policy
 from train import sac
 from train.checkpoint import Checkpoints
 

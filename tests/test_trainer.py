@@ -11,15 +11,21 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mjx_multiarm.env import EnvConfig, ReachingEnv
+from mjx_multiarm.env.observation import EE_POSE, TARGET_POSE, TARGET_POSE_PREV
+from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
+from mjx_multiarm.env.wrappers import TaskBank
 from mjx_multiarm.expert.solve import solve_task
 from mjx_multiarm.expert.store import ExpertStore, ExpertTable, save_experts
-from mjx_multiarm.observation import EE_POSE, TARGET_POSE, TARGET_POSE_PREV
 from mjx_multiarm.tasks.types import take, with_slots
-from mjx_multiarm.wrappers import TaskBank
 from train.agent import SACConfig
 from train.curriculum import LEVELS
-from train.trainer import Demonstrations, FailedQueue, TrainConfig, Trainer, hindsight_transitions
+from train.trainer import (
+    Demonstrations,
+    FailedQueue,
+    TrainConfig,
+    Trainer,
+    hindsight_transitions,
+)
 
 
 @pytest.fixture(scope="module")
@@ -142,10 +148,10 @@ def test_failed_queue_is_a_bounded_fifo():
 
 SHARDED = """
 import jax, numpy as np
-from mjx_multiarm.env import EnvConfig, ReachingEnv
+from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
 from mjx_multiarm.tasks.types import with_slots
-from mjx_multiarm.wrappers import TaskBank
+from mjx_multiarm.env.wrappers import TaskBank
 from train.trainer import TrainConfig, Trainer
 
 assert len(jax.devices()) == 2

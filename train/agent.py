@@ -25,9 +25,9 @@ import jax.numpy as jnp
 import optax
 from flax import nnx, struct
 
+from mjx_multiarm.env.observation import InputFeatures
+from mjx_multiarm.geometry.robot import NUM_JOINTS
 from models.networks import Actor, TwinCritic
-from mjx_multiarm.observation import InputFeatures
-from mjx_multiarm.robot import NUM_JOINTS
 from train.replay import Transitions
 
 
@@ -87,8 +87,8 @@ def _optimizers(config: SACConfig):
 def create_agent(key, config: SACConfig = SACConfig()) -> Agent:
     """Freshly initialized networks (weights as the original) and optimizers."""
     actor_key, critic_key = jax.random.split(key)
-    actor_def, actor = nnx.split(Actor(nnx.Rngs(actor_key), squash=config.squash, inputs=config.inputs))
-    critic_def, critic = nnx.split(TwinCritic(nnx.Rngs(critic_key), inputs=config.inputs))
+    actor_def, actor = nnx.split(Actor(nnx.Rngs(actor_key), config.inputs, NUM_JOINTS, squash=config.squash))
+    critic_def, critic = nnx.split(TwinCritic(nnx.Rngs(critic_key), config.inputs, NUM_JOINTS))
     actor_opt, critic_opt, alpha_opt = _optimizers(config)
     log_alpha = jnp.asarray(math.log(config.alpha), jnp.float32)
     return Agent(actor, actor, critic, critic, actor_opt.init(actor), critic_opt.init(critic), log_alpha,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import jax
 from flax import nnx
 
-from mjx_multiarm.env import ReachingEnv
-from mjx_multiarm.wrappers import TaskBank, run_episodes
+from mjx_multiarm.env.reaching import ReachingEnv
+from mjx_multiarm.env.wrappers import TaskBank, run_episodes
 from train.agent import Agent
 
 
@@ -15,7 +15,7 @@ def evaluate_policy(agent: Agent, env: ReachingEnv, bank: TaskBank, sample_key=N
     the deployed policy (``agent.average_actor``), or with sampled actions of the training
     policy (``agent.actor``, its noise bound scaled by ``std_scale``) when ``sample_key`` is
     given; returns
-    :meth:`~mjx_multiarm.wrappers.EpisodeStats.summary`."""
+    :meth:`~mjx_multiarm.env.wrappers.EpisodeStats.summary`."""
     actor_def = agent.actor_def
 
     def policy(states, actor):

@@ -15,8 +15,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from mjx_multiarm.observation import ELEMENT_SIZE
-from mjx_multiarm.robot import NUM_JOINTS
+from mjx_multiarm.env.observation import ELEMENT_SIZE
+from mjx_multiarm.geometry.robot import NUM_JOINTS
 
 
 def ring_write(ring, values, flags, start):

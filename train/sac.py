@@ -53,20 +53,20 @@ import sys
 import time
 
 import jax
-import numpy as np
 
-from models.policy_file import save_policy
-from mjx_multiarm.env import EVAL_TOLERANCE, EnvConfig, ReachingEnv
+from mjx_multiarm.cli import parse_arms
+from mjx_multiarm.env.observation import InputFeatures
+from mjx_multiarm.env.reaching import EVAL_TOLERANCE, EnvConfig, ReachingEnv
+from mjx_multiarm.env.wrappers import TaskBank
 from mjx_multiarm.expert.planner import PlannerConfig
 from mjx_multiarm.expert.precompute import precompute
 from mjx_multiarm.expert.store import ExpertStore
-from mjx_multiarm.observation import InputFeatures
-from mjx_multiarm.policy import policy_env_settings
-from mjx_multiarm.tasks.__main__ import parse_arms
-from mjx_multiarm.tasks.dataset import atomic_write, load_tasks, save_tasks
+from mjx_multiarm.files import atomic_write
+from mjx_multiarm.planner.policy import policy_env_settings
+from mjx_multiarm.planner.policy_file import save_policy
+from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
 from mjx_multiarm.tasks.generate import LAYOUTS, GenerationSpec, generate_dataset
 from mjx_multiarm.tasks.types import take
-from mjx_multiarm.wrappers import TaskBank
 from train.agent import SACConfig
 from train.checkpoint import Checkpoints
 from train.curriculum import LEVELS

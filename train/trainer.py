@@ -9,7 +9,7 @@ One call of :meth:`Trainer.iteration` (compiled once) does, in the style of Brax
    new episodes when the policy graduates); every failed episode whose task has an expert
    joins a queue of failed tasks;
 3. up to ``expert_replays`` queued failed tasks are re-run from their start with the
-   expert's stored actions (:func:`mjx_multiarm.wrappers.replay_actions`) and the expert's
+   expert's stored actions (:func:`mjx_multiarm.env.wrappers.replay_actions`) and the expert's
    experience, with the environment's rewards, enters the buffer beside the failed attempt;
 4. with ``hindsight`` = C > 0, C copies of every policy transition of the rollout enter the
    buffer relabelled with hindsight goals (:func:`hindsight_transitions`);
@@ -35,10 +35,10 @@ import numpy as np
 from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from mjx_multiarm.env import ReachingEnv, State
+from mjx_multiarm.env.observation import retarget
+from mjx_multiarm.env.reaching import ReachingEnv, State
+from mjx_multiarm.env.wrappers import AutoReset, BatchState, TaskBank, replay_actions
 from mjx_multiarm.expert.store import ExpertStore
-from mjx_multiarm.observation import retarget
-from mjx_multiarm.wrappers import AutoReset, BatchState, TaskBank, replay_actions
 from train.agent import Agent, SACConfig, bc_update, create_agent, sac_update
 from train.curriculum import LEVELS, GroupedCurriculum
 from train.replay import ReplayBuffer, Transitions, ring_write

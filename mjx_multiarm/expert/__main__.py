@@ -20,10 +20,10 @@ import sys
 
 import numpy as np
 
+from mjx_multiarm.cli import Progress
 from mjx_multiarm.expert.planner import PlannerConfig
 from mjx_multiarm.expert.precompute import BACKENDS, CHUNK_SIZE, precompute
 from mjx_multiarm.expert.store import ExpertStore
-from mjx_multiarm.progress import Progress
 
 
 def report(store: ExpertStore) -> dict:

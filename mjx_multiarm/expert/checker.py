@@ -1,9 +1,9 @@
 """The collision model compiled for the planner: single configurations and straight motions.
 
 The planner asks one question at a time (is this configuration free? is this edge free?),
-which the batched JAX kernel (:mod:`mjx_multiarm.collision`) answers only through a
+which the batched JAX kernel (:mod:`mjx_multiarm.geometry.collision`) answers only through a
 dispatch of 100-200 microseconds, after compiling for every batch shape. This module evaluates the same geometry (the capsules and
-boxes of ``assets/ur5.xml``, the pairs of :class:`mjx_multiarm.scene.CollisionPairs`, the
+boxes of ``assets/ur5.xml``, the pairs of :class:`mjx_multiarm.geometry.scene.CollisionPairs`, the
 same exact distance formulas) as numba-compiled scalar code with early exits: bounding
 spheres of each arm and each geom skip pairs that cannot touch, and the first contact ends
 the query. Verdicts agree with the JAX kernel (``tests/test_expert_checker.py``) except
@@ -22,8 +22,8 @@ import mujoco
 import numba
 import numpy as np
 
-from mjx_multiarm.robot import NUM_JOINTS, load_arm
-from mjx_multiarm.scene import build_scene
+from mjx_multiarm.geometry.robot import NUM_JOINTS, load_arm
+from mjx_multiarm.geometry.scene import build_scene
 
 _jit = numba.njit(cache=True, nogil=True)
 #: Clearance (m) that an expert's replayed steps must keep, so that the environment's
@@ -96,7 +96,7 @@ def _pose_arm(base_pos, base_rot, joints, body_pos, body_rot, body_joint, joint_
 
 @_jit
 def _segment_distance(p1, q1, p2, q2):
-    """Distance between segments (Ericson 5.1.9, as :func:`mjx_multiarm.collision.segment_distance`)."""
+    """Distance between segments (Ericson 5.1.9, as :func:`mjx_multiarm.geometry.collision.segment_distance`)."""
     a = e = b = c = f = 0.0
     for i in range(3):
         d1, d2, r = q1[i] - p1[i], q2[i] - p2[i], p1[i] - p2[i]
@@ -181,7 +181,7 @@ def _segment_box_distance(p, q, box, half):
 
 @_jit
 def _box_box_distance(box_a, half_a, box_b, half_b):
-    """Signed distance between boxes (as :func:`mjx_multiarm.collision.box_box_distance`):
+    """Signed distance between boxes (as :func:`mjx_multiarm.geometry.collision.box_box_distance`):
     separating-axis penetration when they overlap, else A's 12 edges and B's 8 corners."""
     r = np.empty((3, 3))
     t = np.empty(3)

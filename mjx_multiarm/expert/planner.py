@@ -23,9 +23,9 @@ import time
 
 import numpy as np
 
-from mjx_multiarm.collision import SWEEP_RESOLUTION
 from mjx_multiarm.expert.checker import CollisionChecker
-from mjx_multiarm.robot import NUM_JOINTS
+from mjx_multiarm.geometry.collision import SWEEP_RESOLUTION
+from mjx_multiarm.geometry.robot import NUM_JOINTS
 
 #: Outcomes of a planning attempt (stored as their index).
 STATUSES = ("solved", "start_in_collision", "goal_in_collision", "out_of_bounds", "iteration_limit", "time_limit", "replay_collision")

@@ -26,7 +26,12 @@ from collections.abc import Callable, Iterator
 
 from mjx_multiarm.expert.planner import SOLVED, PlannerConfig
 from mjx_multiarm.expert.solve import solve_task
-from mjx_multiarm.expert.store import ExpertStore, ExpertTable, merge_experts, save_experts
+from mjx_multiarm.expert.store import (
+    ExpertStore,
+    ExpertTable,
+    merge_experts,
+    save_experts,
+)
 from mjx_multiarm.tasks.dataset import load_tasks
 from mjx_multiarm.tasks.types import Tasks, take
 

@@ -18,12 +18,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_multiarm.env import CONTROL_PERIOD, ReachingEnv
+from mjx_multiarm.env.reaching import CONTROL_PERIOD, ReachingEnv
+from mjx_multiarm.env.wrappers import TaskBank
 from mjx_multiarm.expert.planner import SOLVED, PlannerConfig
 from mjx_multiarm.expert.solve import solve, task_checker
 from mjx_multiarm.tasks.dynamic import target_at
 from mjx_multiarm.tasks.types import Tasks, take
-from mjx_multiarm.wrappers import TaskBank
 
 
 @functools.cache

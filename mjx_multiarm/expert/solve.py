@@ -16,10 +16,17 @@ import dataclasses
 
 import numpy as np
 
-from mjx_multiarm.env import step_limits
+from mjx_multiarm.env.reaching import step_limits
 from mjx_multiarm.expert.decimate import ANGLE_TOLERANCE, path_to_deltas
-from mjx_multiarm.expert.planner import REPLAY_COLLISION, SOLVED, CollisionChecker, PlannerConfig, plan, task_seed
-from mjx_multiarm.robot import load_arm
+from mjx_multiarm.expert.planner import (
+    REPLAY_COLLISION,
+    SOLVED,
+    CollisionChecker,
+    PlannerConfig,
+    plan,
+    task_seed,
+)
+from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.tasks.types import Tasks
 
 

@@ -21,7 +21,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from mjx_multiarm.expert.planner import SOLVED, STATUSES
-from mjx_multiarm.tasks.dataset import atomic_write
+from mjx_multiarm.files import atomic_write
 
 MAGIC = b"MJXEXPRT"
 VERSION = 1

@@ -19,34 +19,11 @@ import os
 import pathlib
 import sys
 
-from mjx_multiarm.progress import Progress
+from mjx_multiarm.cli import Progress, parse_arms
 from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
-from mjx_multiarm.tasks.generate import LAYOUTS, MODES, GenerationSpec, generate_dataset
+from mjx_multiarm.tasks.generate import DATASETS, LAYOUTS, MODES, GenerationSpec, generate_dataset
 from mjx_multiarm.tasks.original_json import export_tasks, import_tasks
 from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_index
-
-#: Named presets: (count, team sizes, mode, seed). The paper's train and test sets, and
-#: small ones for the default CPU run and the tests.
-PRESETS = {
-    "train": GenerationSpec(count=1_000_000, arm_counts=(1, 2, 3, 4), mode="static", seed=0),
-    "test": GenerationSpec(count=30_000, arm_counts=tuple(range(1, 11)), mode="dynamic", seed=1),
-    "small": GenerationSpec(count=1_000, arm_counts=(1, 2, 3, 4), mode="static", seed=2),
-    "tiny": GenerationSpec(count=40, arm_counts=(1, 2, 3, 4), mode="static", seed=3),
-}
-
-
-def parse_arms(text: str) -> tuple[int, ...]:
-    """'1-4' -> (1, 2, 3, 4); '2,5' -> (2, 5)."""
-    counts: list[int] = []
-    try:
-        for part in text.split(","):
-            low, _, high = part.partition("-")
-            counts += range(int(low), int(high or low) + 1)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--arms: expected a range like 1-4 or a list like 2,5; got {text!r}") from None
-    if not counts or min(counts) < 1:
-        raise argparse.ArgumentTypeError(f"--arms: team sizes must be >= 1; got {text!r}")
-    return tuple(counts)
 
 
 def _counts(values, bins) -> dict[str, int]:
@@ -84,7 +61,7 @@ def main(argv=None) -> None:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
     gen = commands.add_parser("generate", help="generate a task dataset (resumable)")
-    gen.add_argument("--preset", choices=sorted(PRESETS), help="named dataset; other flags override its fields")
+    gen.add_argument("--preset", choices=sorted(DATASETS), help="named dataset; other flags override its fields")
     gen.add_argument("--arms", type=parse_arms, help="team sizes, e.g. 1-4 or 2,5")
     gen.add_argument("--count", type=int, help="number of tasks")
     gen.add_argument("--mode", choices=MODES, help="static, or dynamic (tasks usable in both modes)")
@@ -110,7 +87,7 @@ def main(argv=None) -> None:
 
     try:
         if args.command == "generate":
-            base = PRESETS[args.preset] if args.preset else None
+            base = DATASETS[args.preset] if args.preset else None
             if base is None and (args.arms is None or args.count is None):
                 parser.error("generate: give --preset, or --arms and --count")
             fields = {"arm_counts": args.arms, "count": args.count, "mode": args.mode, "seed": args.seed, "max_arms": args.max_arms,

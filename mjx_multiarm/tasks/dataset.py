@@ -12,33 +12,14 @@ from __future__ import annotations
 import json
 import os
 import pathlib
-import tempfile
 import zipfile
 
 import numpy as np
 
+from mjx_multiarm.files import atomic_write
 from mjx_multiarm.tasks.types import SCHEMA, Tasks, validate
 
 SCHEMA_VERSION = 1
-
-
-def atomic_write(path: str | os.PathLike, write) -> None:
-    """Call ``write(file_object)`` on a temporary file beside ``path``, then rename it."""
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        pathlib.Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def save_tasks(path: str | os.PathLike, tasks: Tasks, metadata: dict | None = None) -> None:

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_multiarm.robot import REACH
+from mjx_multiarm.geometry.robot import REACH
 
 #: Grid cells per workspace radius.
 GRID = 12

@@ -13,8 +13,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from mjx_multiarm.kinematics import forward_kinematics
-from mjx_multiarm.robot import ArmModel
+from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.robot import ArmModel
 
 #: FK samples along each arm's joint-space segment for the arc-length table.
 PATH_SAMPLES = 64

@@ -32,15 +32,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_multiarm.collision import scene_contacts
-from mjx_multiarm.ik import solve_positions
-from mjx_multiarm.kinematics import forward_kinematics
-from mjx_multiarm.robot import REACH
-from mjx_multiarm.scene import Scene, build_scene
-from mjx_multiarm.tasks.difficulty import task_difficulty
+from mjx_multiarm.geometry.collision import scene_contacts
+from mjx_multiarm.geometry.ik import solve_positions
+from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.robot import REACH
+from mjx_multiarm.geometry.scene import Scene, build_scene
+from mjx_multiarm.geometry.transforms import yaw_quat
 from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
-from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_index, concatenate
-from mjx_multiarm.transforms import yaw_quat
+from mjx_multiarm.tasks.difficulty import task_difficulty
+from mjx_multiarm.tasks.types import (
+    DIFFICULTY_BINS,
+    SPEED_BINS,
+    Tasks,
+    bin_index,
+    concatenate,
+)
 
 MIN_BASE_SPACING = 0.3  # m
 #: Per difficulty bin, the spacing scales of candidate layouts (m): the ranges where 1-10
@@ -340,3 +346,13 @@ def generate_dataset(
     save_tasks(out, tasks, {"generator": record})
     shutil.rmtree(partial)
     return tasks
+
+
+#: Named datasets (``python -m mjx_multiarm.tasks generate --preset NAME``): the paper's train
+#: and test sets, and small ones for the default CPU run and the tests.
+DATASETS = {
+    "train": GenerationSpec(count=1_000_000, arm_counts=(1, 2, 3, 4), mode="static", seed=0),
+    "test": GenerationSpec(count=30_000, arm_counts=tuple(range(1, 11)), mode="dynamic", seed=1),
+    "small": GenerationSpec(count=1_000, arm_counts=(1, 2, 3, 4), mode="static", seed=2),
+    "tiny": GenerationSpec(count=40, arm_counts=(1, 2, 3, 4), mode="static", seed=3),
+}

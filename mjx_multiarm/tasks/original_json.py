@@ -25,11 +25,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mjx_multiarm.api import evaluate_arms
-from mjx_multiarm.tasks.dataset import atomic_write
+from mjx_multiarm.files import atomic_write
+from mjx_multiarm.geometry.evaluate import evaluate_arms
+from mjx_multiarm.geometry.transforms import quat_angle
 from mjx_multiarm.tasks.difficulty import task_difficulty
 from mjx_multiarm.tasks.types import SCHEMA, Tasks, validate
-from mjx_multiarm.transforms import quat_angle
 
 #: Keys every task file must have.
 REQUIRED_KEYS = ("base_poses", "start_config", "goal_config", "target_eff_poses", "difficulty")

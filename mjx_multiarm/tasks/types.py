@@ -1,7 +1,7 @@
 """The task type: one multi-arm reaching task per row, padded to ``max_arms`` slots.
 
 A :class:`Tasks` holds a batch of tasks as arrays with a leading task axis (numpy on disk,
-JAX on device: it is a pytree). Quaternions are wxyz (see :mod:`mjx_multiarm.transforms`).
+JAX on device: it is a pytree). Quaternions are wxyz (see :mod:`mjx_multiarm.geometry.transforms`).
 
 Every task starts at ``start_joints``. In static mode the targets are the end-effector
 poses ``FK(goal_joints)``, stored as ``target_pos`` / ``target_quat``. In dynamic mode the

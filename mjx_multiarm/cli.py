@@ -1,7 +1,8 @@
-"""A one-line progress bar for long command-line jobs."""
+"""Command-line helpers shared by every entry point: team-size ranges and a progress bar."""
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 
@@ -22,3 +23,17 @@ class Progress:
 
     def close(self) -> None:
         print(file=sys.stderr)
+
+
+def parse_arms(text: str) -> tuple[int, ...]:
+    """'1-4' -> (1, 2, 3, 4); '2,5' -> (2, 5)."""
+    counts: list[int] = []
+    try:
+        for part in text.split(","):
+            low, _, high = part.partition("-")
+            counts += range(int(low), int(high or low) + 1)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--arms: expected a range like 1-4 or a list like 2,5; got {text!r}") from None
+    if not counts or min(counts) < 1:
+        raise argparse.ArgumentTypeError(f"--arms: team sizes must be >= 1; got {text!r}")
+    return tuple(counts)

@@ -10,8 +10,13 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
-from mjx_multiarm.robot import ArmModel
-from mjx_multiarm.transforms import axis_angle_quat, canonical_quat, quat_mul, quat_to_mat
+from mjx_multiarm.geometry.robot import ArmModel
+from mjx_multiarm.geometry.transforms import (
+    axis_angle_quat,
+    canonical_quat,
+    quat_mul,
+    quat_to_mat,
+)
 
 
 @struct.dataclass
@@ -50,7 +55,7 @@ def forward_kinematics(arm: ArmModel, base_pos, base_quat, joints) -> ArmFrames:
     """Forward kinematics of arms placed at base poses.
 
     Args:
-      arm: arm constants (:func:`mjx_multiarm.robot.load_arm`).
+      arm: arm constants (:func:`mjx_multiarm.geometry.robot.load_arm`).
       base_pos: [..., 3] base positions.
       base_quat: [..., 4] base orientations (wxyz, unit).
       joints: [..., 6] joint angles (rad).

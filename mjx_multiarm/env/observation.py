@@ -30,7 +30,12 @@ import dataclasses
 import jax.numpy as jnp
 from flax import struct
 
-from mjx_multiarm.transforms import canonical_quat, quat_conjugate, quat_mul, quat_to_mat
+from mjx_multiarm.geometry.transforms import (
+    canonical_quat,
+    quat_conjugate,
+    quat_mul,
+    quat_to_mat,
+)
 
 ELEMENT_SIZE = 107
 #: Slices of an element: end-effector pose at t; target poses at t-1 and t.

@@ -22,8 +22,9 @@ import jax
 import numpy as np
 from flax import nnx
 
+from mjx_multiarm.env.observation import InputFeatures
+from mjx_multiarm.geometry.robot import NUM_JOINTS
 from models.networks import Actor
-from mjx_multiarm.observation import InputFeatures
 
 FORMAT = "mjx-multiarm-policy"
 VERSION = 1
@@ -49,7 +50,7 @@ def _digest(arrays: dict[str, np.ndarray]) -> str:
 
 def _architecture(squash: bool, inputs: InputFeatures) -> dict[str, list[int]]:
     """Parameter shapes of a freshly built actor (no weights materialized)."""
-    abstract = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), squash=squash, inputs=inputs))
+    abstract = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), inputs, NUM_JOINTS, squash=squash))
     return {_name(path): list(value.shape) for path, value in nnx.to_flat_state(nnx.state(abstract, nnx.Param))}
 
 
@@ -122,7 +123,7 @@ def load_policy(path: str | os.PathLike) -> LoadedPolicy:
     unexpected = sorted(set(contents) - set(expected))
     if unexpected:
         raise ValueError(f"{path}: unexpected parameters {unexpected[:3]}: the file holds another architecture")
-    actor = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), squash=bool(meta["squash"]), inputs=inputs))
+    actor = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), inputs, NUM_JOINTS, squash=bool(meta["squash"])))
     graphdef, state = nnx.split(actor)
     flat = [(path_, nnx.Param(jax.numpy.asarray(contents[_name(path_)]))) for path_, _ in nnx.to_flat_state(state)]
     return LoadedPolicy(nnx.merge(graphdef, nnx.from_flat_state(flat)), meta)

@@ -12,9 +12,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_multiarm.kinematics import forward_kinematics
-from mjx_multiarm.robot import ArmModel
-from mjx_multiarm.transforms import quat_to_mat
+from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.robot import ArmModel
+from mjx_multiarm.geometry.transforms import quat_to_mat
 
 
 def _joint_bodies(arm: ArmModel) -> np.ndarray:

@@ -45,14 +45,23 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mjx_multiarm.collision import SWEEP_RESOLUTION, num_substeps, swept_contacts
-from mjx_multiarm.kinematics import ArmFrames, forward_kinematics
-from mjx_multiarm.observation import NEIGHBOUR_RADIUS, ArmSnapshot, observe, retarget
-from mjx_multiarm.robot import NUM_JOINTS, ArmModel
-from mjx_multiarm.scene import Scene, build_scene
+from mjx_multiarm.env.observation import (
+    NEIGHBOUR_RADIUS,
+    ArmSnapshot,
+    observe,
+    retarget,
+)
+from mjx_multiarm.geometry.collision import (
+    SWEEP_RESOLUTION,
+    num_substeps,
+    swept_contacts,
+)
+from mjx_multiarm.geometry.kinematics import ArmFrames, forward_kinematics
+from mjx_multiarm.geometry.robot import NUM_JOINTS, ArmModel
+from mjx_multiarm.geometry.scene import Scene, build_scene
+from mjx_multiarm.geometry.transforms import quat_angle
 from mjx_multiarm.tasks.dynamic import PATH_SAMPLES, path_lengths, target_at
 from mjx_multiarm.tasks.types import Tasks
-from mjx_multiarm.transforms import quat_angle
 
 #: Seconds per control step (the paper's action interval).
 CONTROL_PERIOD = 0.05
@@ -137,7 +146,7 @@ class State:
       joints: [A, 6] joint angles.
       arms: world-frame snapshot of the arms at this step (next step's history frame).
       obs: [A, A, 107] every arm's observation sequence; obs_mask: [A, A] (see
-        :func:`mjx_multiarm.observation.observe`).
+        :func:`mjx_multiarm.env.observation.observe`).
       reward: [A] reward of the last step.
       reached: [A] arm within tolerance of its target (inactive slots False).
       collided: [A] arm collided during the last step.

@@ -1,7 +1,7 @@
 """The padded multi-arm scene: one MuJoCo model with ``max_arms`` UR5 slots and a ground.
 
 A task with k arms activates k slots; the others are masked out of every computation
-(:mod:`mjx_multiarm.collision`), so one compiled function serves every team size. The
+(:mod:`mjx_multiarm.geometry.collision`), so one compiled function serves every team size. The
 MuJoCo model is composed with ``MjSpec``: each slot attaches a copy of the arm MJCF under
 the prefix ``arm{i}/``; its base is a mocap body placed at the arm's base pose.
 
@@ -18,7 +18,7 @@ import functools
 import mujoco
 import numpy as np
 
-from mjx_multiarm.robot import ARM_XML, ArmModel, load_arm
+from mjx_multiarm.geometry.robot import ARM_XML, ArmModel, load_arm
 
 #: Where MuJoCo-side models park inactive slots: far apart and far from every task.
 PARKING_ORIGIN = np.array([1000.0, 0.0, 0.0])

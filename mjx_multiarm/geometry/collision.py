@@ -13,7 +13,7 @@ exact while the geoms are apart (what MuJoCo C's ``mj_geomDistance`` computes):
 
 Distances are signed: negative means penetration (for a segment that enters a box, the
 depth of the middle of its part inside). The pairs checked are those of
-:class:`mjx_multiarm.scene.CollisionPairs`.
+:class:`mjx_multiarm.geometry.scene.CollisionPairs`.
 
 Coordinates are handled as separate x/y/z arrays inside the kernel so that XLA fuses each
 check into one elementwise loop over all pairs of all scenes.
@@ -31,8 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mjx_multiarm.kinematics import ArmFrames, forward_kinematics
-from mjx_multiarm.scene import Scene
+from mjx_multiarm.geometry.kinematics import ArmFrames, forward_kinematics
+from mjx_multiarm.geometry.scene import Scene
 
 #: Default largest joint motion between two swept-collision checks (rad).
 SWEEP_RESOLUTION = 0.05

@@ -12,10 +12,15 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_multiarm.env import ReachingEnv, State
-from mjx_multiarm.kinematics import forward_kinematics
-from mjx_multiarm.robot import ArmModel
-from mjx_multiarm.transforms import canonical_quat, quat_conjugate, quat_mul, quat_to_mat
+from mjx_multiarm.env.reaching import ReachingEnv, State
+from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.robot import ArmModel
+from mjx_multiarm.geometry.transforms import (
+    canonical_quat,
+    quat_conjugate,
+    quat_mul,
+    quat_to_mat,
+)
 
 
 def rotation_vector(q):

@@ -13,7 +13,7 @@ import pathlib
 import mujoco
 import numpy as np
 
-ARM_XML = pathlib.Path(__file__).resolve().parent / "assets" / "ur5.xml"
+ARM_XML = pathlib.Path(__file__).resolve().parents[1] / "assets" / "ur5.xml"
 NUM_JOINTS = 6
 NUM_POINTS = 10
 #: Reach of the arm: the radius of its workspace hemisphere (m).

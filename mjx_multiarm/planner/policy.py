@@ -29,16 +29,16 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx, struct
 
-from mjx_multiarm.api import base_pose_arrays, check_finite
-from mjx_multiarm.env import EVAL_TOLERANCE, EnvConfig, ReachingEnv
-from mjx_multiarm.kinematics import forward_kinematics
-from mjx_multiarm.observation import ArmSnapshot, observe
-from mjx_multiarm.robot import NUM_JOINTS
-from mjx_multiarm.transforms import quat_angle
-from models.policy_file import LoadedPolicy, load_policy
+from mjx_multiarm.env.observation import ArmSnapshot, observe
+from mjx_multiarm.env.reaching import EVAL_TOLERANCE, EnvConfig, ReachingEnv
+from mjx_multiarm.geometry.evaluate import base_pose_arrays, check_finite
+from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.robot import NUM_JOINTS
+from mjx_multiarm.geometry.transforms import quat_angle
+from mjx_multiarm.planner.policy_file import LoadedPolicy, load_policy
 
 #: The policy shipped with the package (trained by the command in benchmarks/RESULTS.md).
-SHIPPED_POLICY = pathlib.Path(__file__).parent / "assets" / "policy.npz"
+SHIPPED_POLICY = pathlib.Path(__file__).parents[1] / "assets" / "policy.npz"
 
 
 @struct.dataclass
@@ -97,7 +97,7 @@ class Planner:
         return self._compiled["env", num_arms]
 
     def policy_fn(self):
-        """``policy(states, params) -> mean actions`` for :func:`mjx_multiarm.wrappers.make_episodes`
+        """``policy(states, params) -> mean actions`` for :func:`mjx_multiarm.env.wrappers.make_episodes`
         (``params``: :attr:`params`)."""
         actor_def = self._actor_def
         return lambda states, params: nnx.merge(actor_def, params)(states.obs, states.obs_mask)[0]

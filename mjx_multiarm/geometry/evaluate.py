@@ -15,11 +15,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mjx_multiarm.collision import frame_contacts
-from mjx_multiarm.kinematics import forward_kinematics
-from mjx_multiarm.robot import NUM_JOINTS
-from mjx_multiarm.scene import Scene, build_scene
-from mjx_multiarm.transforms import wxyz_to_xyzw, xyzw_to_wxyz, yaw_quat
+from mjx_multiarm.geometry.collision import frame_contacts
+from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.robot import NUM_JOINTS
+from mjx_multiarm.geometry.scene import Scene, build_scene
+from mjx_multiarm.geometry.transforms import wxyz_to_xyzw, xyzw_to_wxyz, yaw_quat
 
 
 @struct.dataclass

@@ -1,4 +1,4 @@
-"""Batched use of :class:`~mjx_multiarm.env.ReachingEnv`: task banks on device, auto-reset,
+"""Batched use of :class:`~mjx_multiarm.env.reaching.ReachingEnv`: task banks on device, auto-reset,
 episode statistics, and replaying stored action sequences (expert demonstrations).
 """
 
@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mjx_multiarm.env import ReachingEnv, State
+from mjx_multiarm.env.reaching import ReachingEnv, State
 from mjx_multiarm.tasks.types import SCHEMA, Tasks, validate, with_slots
 
 
@@ -211,7 +211,7 @@ def make_episodes(env: ReachingEnv, policy, steps: int):
 
     ``policy(states, params) -> actions [B, max_arms, 6]`` sees the batched states; the
     returned function maps (tasks [B], params) to the final states (finished episodes stay
-    frozen at their end, see :class:`~mjx_multiarm.env.ReachingEnv`).
+    frozen at their end, see :class:`~mjx_multiarm.env.reaching.ReachingEnv`).
     """
 
     @jax.jit

@@ -32,7 +32,7 @@ import mujoco
 import numpy as np
 
 from mjx_multiarm import capsule_fit
-from mjx_multiarm.robot import ARM_XML
+from mjx_multiarm.geometry.robot import ARM_XML
 
 #: Links in chain order (the arm MJCF's bodies 1..8); ``ee_link`` is the gripper box.
 LINKS = (*capsule_fit.LINK_MESHES, "ee_link")

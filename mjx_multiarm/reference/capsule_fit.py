@@ -17,7 +17,7 @@ shrinking: each capsule in turn is refitted to only the points that no other
 capsule encloses, until the summed volume stops improving.  The candidate
 with the smallest union volume wins.
 
-Run ``python -m mjx_multiarm.capsule_fit --meshes DIR`` to fit all links
+Run ``python -m mjx_multiarm.reference.capsule_fit --meshes DIR`` to fit all links
 (``--sweep`` first compares 1, 2 and 3 capsules per link). The gripper stand-in box of
 ``ee_link`` is not fitted: the collision model keeps it as the exact box.
 """

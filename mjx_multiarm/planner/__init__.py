@@ -1,0 +1,2 @@
+"""Trained policies deployed: the policy file format and the closed-loop :class:`Planner`.
+"""
