@@ -21,7 +21,13 @@ import sys
 
 from mjx_multiarm.cli import Progress, parse_arms
 from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
-from mjx_multiarm.tasks.generate import DATASETS, LAYOUTS, MODES, GenerationSpec, generate_dataset
+from mjx_multiarm.tasks.generate import (
+    DATASETS,
+    LAYOUTS,
+    MODES,
+    GenerationSpec,
+    generate_dataset,
+)
 from mjx_multiarm.tasks.original_json import export_tasks, import_tasks
 from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_index
 
