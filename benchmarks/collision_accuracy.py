@@ -35,7 +35,7 @@ import time
 
 import jax
 import numpy as np
-from core_throughput import cpu_name
+from common import cpu_name
 
 from mjx_multiarm.geometry.collision import scene_contacts
 from mjx_multiarm.geometry.robot import load_arm

@@ -17,13 +17,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from common import add_timing_arguments, cpu_name, selected_device
 
 from mjx_multiarm import build_scene, scene_contacts
 from mjx_multiarm.geometry.transforms import yaw_quat
@@ -114,28 +114,6 @@ def measure(num_arms, batch, device, impl="ours", steps=20, min_seconds=2.0, see
         "capsules_per_arm": scene.arm.num_capsules,
         "repeats": len(times),
     }
-
-
-def cpu_name() -> str:
-    """The CPU model (Linux), else the machine type."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return platform.machine()
-
-
-def add_timing_arguments(parser: argparse.ArgumentParser, steps: int, steps_help: str) -> None:
-    """The options every throughput benchmark shares: device, steps per rollout, timing, JSON."""
-    parser.add_argument("--device", choices=["cpu", "gpu"], default=None, help="default: JAX's default device")
-    parser.add_argument("--steps", type=int, default=steps, help=steps_help)
-    parser.add_argument("--seconds", type=float, default=2.0, help="minimum timing per measurement")
-    parser.add_argument("--json", action="store_true", help="print one JSON line per measurement")
-
-
-def selected_device(args) -> jax.Device:
-    """The device named by ``--device`` (default: JAX's default device)."""
-    return jax.devices(args.device)[0] if args.device else jax.devices()[0]
 
 
 def main(argv=None):

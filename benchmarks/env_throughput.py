@@ -22,7 +22,7 @@ import statistics
 import time
 
 import jax
-from core_throughput import add_timing_arguments, cpu_name, selected_device
+from common import add_timing_arguments, cpu_name, selected_device
 
 from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
 from mjx_multiarm.env.scripted import ik_actions

@@ -20,7 +20,7 @@ import pathlib
 import time
 
 import numpy as np
-from core_throughput import cpu_name
+from common import cpu_name
 
 from mjx_multiarm.cli import parse_arms
 from mjx_multiarm.expert.__main__ import report

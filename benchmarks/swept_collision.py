@@ -20,7 +20,7 @@ import json
 import jax
 import jax.numpy as jnp
 import numpy as np
-from core_throughput import cpu_name
+from common import cpu_name
 
 from mjx_multiarm.env.reaching import ReachingEnv
 from mjx_multiarm.geometry.collision import scene_contacts

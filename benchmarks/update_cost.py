@@ -23,7 +23,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from core_throughput import cpu_name
+from common import cpu_name
 
 from mjx_multiarm.cli import parse_arms
 from mjx_multiarm.env.observation import ELEMENT_SIZE

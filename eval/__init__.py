@@ -1,1 +1,1 @@
-"""Evaluation: `python -m eval.benchmark`, paper tables, runtime, latency (issue 7)."""
+"""Evaluation: `python -m eval.benchmark` (the paper's tables), `eval.latency`, `eval.runtime`."""

@@ -1,6 +1,6 @@
 """Demo: the scripted IK controller on freshly generated multi-arm reaching tasks, under one jit.
 
-Until ``python -m train.sac`` exists this is the project's main job. It generates static
+A one-minute check of the environment alone. It generates static
 tasks (1-4 arms by default), runs every task as one environment of a vectorized batch with
 the damped-least-squares IK controller of :mod:`mjx_multiarm.env.scripted` (each arm reaches for
 its own target and ignores the others), and prints success, collision and timeout rates per

@@ -1,1 +1,1 @@
-"""Flax networks: LSTM state encoder, actor, twin critics (issue 6)."""
+"""Flax networks: LSTM state encoder, actor, twin critics. A leaf: it imports nothing of the project (the observation features come in as a constructor argument)."""

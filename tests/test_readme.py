@@ -18,3 +18,26 @@ def test_readme_has_examples():
 @pytest.mark.parametrize("index", range(len(BLOCKS)))
 def test_readme_example_runs(index):
     exec(compile(BLOCKS[index], f"README.md python block {index}", "exec"), {})
+
+
+def _layout_paths() -> list[str]:
+    """The paths in the first column of the README's Layout tables."""
+    section = README.read_text().split("\n## Layout\n", 1)[1].split("\n## ", 1)[0]
+    return re.findall(r"^\| `([^`]+)` \|", section, flags=re.M)
+
+
+def test_layout_section_matches_the_tree():
+    """Every folder and module the README's Layout lists exists, and every package folder
+    and module of the tree is listed."""
+    root = README.parent
+    listed = _layout_paths()
+    missing = [p for p in listed if not (root / p).exists()]
+    assert not missing, f"README Layout lists paths that do not exist: {missing}"
+    folders = {f"{d.relative_to(root).as_posix()}/" for top in ("mjx_multiarm", "models", "train", "eval")
+               for d in [root / top, *(root / top).rglob("*")] if d.is_dir() and (d / "__init__.py").exists()}
+    folders |= {"benchmarks/", "notebooks/", "tests/", "mjx_multiarm/assets/"}
+    modules = {p.relative_to(root).as_posix() for top in ("mjx_multiarm", "models", "train", "eval")
+               for p in (root / top).rglob("*.py") if p.name != "__init__.py"}
+    modules.add("benchmarks/common.py")
+    unlisted = sorted((folders | modules) - set(listed))
+    assert not unlisted, f"README Layout does not list: {unlisted}"

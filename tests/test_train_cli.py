@@ -1,4 +1,4 @@
-"""``python -m train.sac`` end to end at the tiny preset, and exact resumption."""
+"""``python -m train.sac`` and the ``train()`` API end to end at the tiny preset, and exact resumption."""
 
 from __future__ import annotations
 
@@ -11,9 +11,12 @@ import pytest
 from flax import nnx
 
 from mjx_multiarm.env.observation import InputFeatures
-from mjx_multiarm.planner.policy_file import load_policy
+from mjx_multiarm.options import apply
+from mjx_multiarm.planner.policy_file import LoadedPolicy, load_policy
 from train import sac
 from train.checkpoint import Checkpoints
+from train.config import PRESETS
+from train.run import load_config, train
 
 
 def _final_actor(run_dir, field="actor"):
@@ -55,7 +58,7 @@ def test_cli_runs_end_to_end_and_resumes_exactly(tmp_path, capsys):
 
 def test_team_options_and_a_task_file_subset(tmp_path, capsys):
     """The team options end to end: per-team curriculum levels in metrics and summary,
-    rotation features in the exported policy; --train-tasks N of a task file without an
+    rotation features in the exported policy; --task-limit N of a task file without an
     expert file plans the experts of those N tasks only."""
     from mjx_multiarm.expert.store import ExpertStore
     from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
@@ -64,7 +67,7 @@ def test_team_options_and_a_task_file_subset(tmp_path, capsys):
     save_tasks(tmp_path / "many.npz", generate_chunk(GenerationSpec(count=12, arm_counts=(1, 2), mode="static", seed=4, max_arms=2), 0))
     run = tmp_path / "team"
     sac.main(["--preset", "tiny", "--run-dir", str(run), "--workers", "1", "--steps", "64", "--tasks", str(tmp_path / "many.npz"),
-              "--train-tasks", "6", "--curriculum-by-team", "1", "--collisions", "restore", "--expert-share", "0.25",
+              "--task-limit", "6", "--curriculum-by-team", "1", "--collisions", "restore", "--expert-share", "0.25",
               "--rotations", "1", "--goal-features", "1", "--json"])
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert load_tasks(run / "tasks.npz")[0].num_tasks == 6 and len(ExpertStore(run / "tasks.experts").task_ids) == 6
@@ -88,9 +91,8 @@ def test_team_options_and_a_task_file_subset(tmp_path, capsys):
 def test_preset_additions_give_way_to_the_ablations(flags, expert_bc, hindsight):
     """The cpu preset's expert term and hindsight goals step aside for the ablations that
     remove what they need, so ``--bc`` and ``--no-expert`` run without further flags."""
-    settings = sac._settings(sac._parser().parse_args(flags))
-    assert (settings["expert_bc"], settings["hindsight"]) == (expert_bc, hindsight)
-    sac._train_config(settings)  # consistent: raises otherwise
+    config = sac.config_from_args(sac._parser().parse_args(flags))  # consistent: raises otherwise
+    assert (config.train.sac.expert_bc, config.train.hindsight) == (expert_bc, hindsight)
 
 
 @pytest.mark.parametrize("flags, message", [
@@ -113,3 +115,20 @@ def test_inconsistent_flags_fail_before_the_run_starts(tmp_path, flags, message)
     with pytest.raises(SystemExit, match=message):
         sac.main(["--preset", "tiny", "--run-dir", str(run_dir), *flags])
     assert not run_dir.exists()
+
+
+def test_train_api_logs_heldout_success_during_training(tmp_path):
+    """``train()`` in-process: the result's policy, summary and metrics; the deployed policy
+    evaluated on held-out tasks during training (per team size, in metrics.csv and the
+    plot); resuming with another configuration than the run's is refused."""
+    config = apply(PRESETS["tiny"], {"budget.steps": 160, "budget.eval_minutes": 1e-4})
+    run, seen = tmp_path / "api", []
+    result = train(config, run, workers=1, progress=seen.append, log=lambda message: None)
+    assert isinstance(result.policy, LoadedPolicy) and result.summary["env_steps"] == 160 and len(seen) == len(result.metrics)
+    evaluated = [r for r in result.metrics if r.get("heldout_success", float("nan")) == r.get("heldout_success")]
+    assert len(evaluated) >= 3 and all(0 <= r["heldout_success_1"] <= 1 for r in evaluated)
+    assert evaluated[-1]["heldout_success"] == result.summary["success_rate"]  # the final evaluation, all tasks
+    assert "heldout_success_1" in (run / "metrics.csv").read_text().splitlines()[0].split(",")
+    assert (run / "learning_curve.png").stat().st_size > 0 and load_config(run) == config == load_config(run / "policy.npz")
+    with pytest.raises(ValueError, match="only the budget may change"):
+        train(apply(config, {"train.sac.gamma": 0.5}), run, resume=True, workers=1)

@@ -27,6 +27,7 @@ from flax import nnx, struct
 
 from mjx_multiarm.env.observation import InputFeatures
 from mjx_multiarm.geometry.robot import NUM_JOINTS
+from mjx_multiarm.options import option
 from models.networks import Actor, TwinCritic
 from train.replay import Transitions
 
@@ -35,20 +36,39 @@ from train.replay import Transitions
 class SACConfig:
     """SAC hyperparameters (defaults: the paper's appendix and the original code)."""
 
-    actor_lr: float = 5e-4
-    critic_lr: float = 1e-3
-    gamma: float = 0.99
-    tau: float = 1e-3
-    alpha: float = 1e-3  # initial (or fixed) entropy temperature
-    learn_alpha: bool = False
-    squash: bool = False
-    alpha_lr: float = 3e-4
-    target_entropy: float = -float(NUM_JOINTS)
-    bc_lr: float = 1e-3  # behaviour-cloning ablation
-    expert_bc: float = 0.0  # weight of the Q-filtered expert behaviour-cloning term of the actor loss (0: the original)
-    policy_average: float = 0.0  # Polyak rate of the deployed average actor per update (0: the latest actor, as the original)
-    inputs: InputFeatures = InputFeatures()  # what the networks compute from an element (default: nothing, as the original)
-    bc_start: int = 0  # the first updates clone the batch's expert actions instead of the SAC actor step (0: none)
+    actor_lr: float = option(5e-4, "actor learning rate")
+    critic_lr: float = option(1e-3, "critic learning rate")
+    gamma: float = option(0.99, "discount factor")
+    tau: float = option(1e-3, "Polyak rate of the target critics")
+    alpha: float = option(1e-3, "entropy temperature (fixed, or the initial value of a learned one)")
+    learn_alpha: bool = option(False, "learn the temperature toward --target-entropy (standard SAC)")
+    squash: bool = option(False, "tanh-squashed samples (standard SAC) instead of the original's bounded-variance Gaussian")
+    alpha_lr: float = option(3e-4, "learning rate of a learned temperature")
+    target_entropy: float = option(-float(NUM_JOINTS), "target policy entropy of a learned temperature")
+    bc_lr: float = option(1e-3, "learning rate of the behaviour-cloning ablation")
+    expert_bc: float = option(0.0, "weight of a behaviour-cloning term on the expert transitions in the actor loss, applied "
+                                   "where the critic rates the expert's action above the policy's (Nair et al. 2018; 0: the "
+                                   "original's pure SAC)")
+    policy_average: float = option(0.0, "deploy (evaluate and export) a Polyak average of the actor's parameters, updated at "
+                                        "this rate per gradient update (0: the latest actor, as the original)")
+    inputs: InputFeatures = InputFeatures()
+    bc_start: int = option(0, "the first N updates train the actor by cloning the batch's expert transitions (the critics "
+                              "learn meanwhile), then SAC takes over (0: none)")
+
+    def __post_init__(self):
+        for name in ("actor_lr", "critic_lr", "alpha", "alpha_lr", "bc_lr"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"SACConfig.{name} must be > 0, got {getattr(self, name)}")
+        if not 0 < self.gamma <= 1:
+            raise ValueError(f"SACConfig.gamma must be in (0, 1], got {self.gamma}")
+        if not 0 < self.tau <= 1:
+            raise ValueError(f"SACConfig.tau must be in (0, 1], got {self.tau}")
+        if self.expert_bc < 0:
+            raise ValueError(f"SACConfig.expert_bc must be >= 0, got {self.expert_bc}")
+        if not 0 <= self.policy_average <= 1:
+            raise ValueError(f"SACConfig.policy_average must be in [0, 1], got {self.policy_average}")
+        if self.bc_start < 0:
+            raise ValueError(f"SACConfig.bc_start must be >= 0, got {self.bc_start}")
 
 
 @struct.dataclass

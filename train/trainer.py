@@ -39,6 +39,7 @@ from mjx_multiarm.env.observation import retarget
 from mjx_multiarm.env.reaching import ReachingEnv, State
 from mjx_multiarm.env.wrappers import AutoReset, BatchState, TaskBank, replay_actions
 from mjx_multiarm.expert.store import ExpertStore
+from mjx_multiarm.options import option
 from train.agent import Agent, SACConfig, bc_update, create_agent, sac_update
 from train.curriculum import LEVELS, GroupedCurriculum
 from train.replay import ReplayBuffer, Transitions, ring_write
@@ -48,27 +49,36 @@ from train.replay import ReplayBuffer, Transitions, ring_write
 class TrainConfig:
     """Sizes of the training loop (see the module docstring)."""
 
-    num_envs: int = 64
-    rollout_steps: int = 16
-    updates_per_iteration: int = 16
-    batch_size: int = 256
-    buffer_size: int = 50_000
-    warmup: int = 2_000
-    expert: bool = True
-    expert_replays: int = 8
-    failed_queue: int = 256
-    bc: bool = False
-    curriculum: bool = True
-    start_level: int = 0
-    noise_decay: float = 0.0  # policy std bound x (eps_p / first level's eps_p) ** noise_decay; 0: fixed
-    hindsight: int = 0  # relabelled copies of each policy transition (hindsight goals); 0: none, as the original
-    curriculum_by_team: bool = False  # one curriculum level per team size; False: one for all, as the original
-    expert_share: float = 0.0  # fraction of every batch drawn from a separate expert buffer; 0: one buffer, as the original
-    expert_buffer: int = 50_000  # rows of that expert buffer
+    num_envs: int = option(64, "environments stepped in parallel")
+    rollout_steps: int = option(16, "environment steps per iteration")
+    updates_per_iteration: int = option(16, "SAC updates per iteration")
+    batch_size: int = option(256, "transitions per SAC update")
+    buffer_size: int = option(50_000, "replay buffer rows (arm transitions)")
+    warmup: int = option(2_000, "transitions in the buffer before the first update")
+    expert: bool = option(True, "replay the expert's demonstration of every failed task (the paper)")
+    expert_replays: int = option(8, "failed tasks replayed with their expert per iteration")
+    expert_steps: int = option(64, "longest expert sequence kept (longer ones are cut)")
+    failed_queue: int = option(256, "failed tasks waiting for their expert replay")
+    bc: bool = option(False, "behaviour cloning on the expert data only (the paper's ablation; see --bc)")
+    curriculum: bool = option(True, "tolerance curriculum from 10 cm / 0.2 rad down to 1 cm / 0.05 rad "
+                                    "(--no-curriculum: 2 cm / 0.1 rad from the start)")
+    start_level: int = option(0, "first curriculum level")
+    noise_decay: float = option(0.0, "shrink the policy's standard-deviation bound with the curriculum: x (eps_p / 10 cm) ** P "
+                                     "(0: the original's fixed bound)")
+    hindsight: int = option(0, "copies of every policy transition relabelled with a hindsight goal (the pose an arm reached "
+                               "later in the episode; Andrychowicz et al. 2017; 0: the original's replay)")
+    curriculum_by_team: bool = option(False, "every team size has its own curriculum level, graduating on its own episodes "
+                                             "(0: one level for all, the original)")
+    expert_share: float = option(0.0, "fraction of every batch drawn from a separate buffer of expert transitions "
+                                      "(0: one buffer for all, the original)")
+    expert_buffer: int = option(50_000, "rows of the expert buffer of --expert-share", flag="expert_buffer_size")
+    expert_prefill: int = option(0, "replay the experts of this many random training tasks into the buffer before the "
+                                    "first iteration (0: none, as the original)")
     sac: SACConfig = SACConfig()
 
     def __post_init__(self):
-        for name in ("num_envs", "rollout_steps", "updates_per_iteration", "batch_size", "buffer_size", "expert_replays", "failed_queue"):
+        for name in ("num_envs", "rollout_steps", "updates_per_iteration", "batch_size", "buffer_size", "expert_replays", "expert_steps",
+                     "failed_queue"):
             if getattr(self, name) < 1:
                 raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.bc and not self.expert:
@@ -79,20 +89,18 @@ class TrainConfig:
             raise ValueError("hindsight relabels the policy's own transitions; behaviour cloning (bc) stores none")
         if self.noise_decay < 0:
             raise ValueError(f"TrainConfig.noise_decay must be >= 0, got {self.noise_decay}")
-        if self.sac.expert_bc < 0:
-            raise ValueError(f"SACConfig.expert_bc must be >= 0, got {self.sac.expert_bc}")
-        if not 0 <= self.sac.policy_average <= 1:
-            raise ValueError(f"SACConfig.policy_average must be in [0, 1], got {self.sac.policy_average}")
         if not 0 <= self.expert_share < 1:
             raise ValueError(f"TrainConfig.expert_share must be in [0, 1), got {self.expert_share}")
         if self.expert_share and (self.bc or not self.expert):
             raise ValueError("expert_share samples expert transitions beside the policy's: it needs expert=True and bc=False")
         if self.expert_share and self.expert_buffer < 1:
             raise ValueError(f"TrainConfig.expert_buffer must be >= 1, got {self.expert_buffer}")
+        if self.expert_prefill < 0:
+            raise ValueError(f"TrainConfig.expert_prefill must be >= 0, got {self.expert_prefill}")
+        if self.expert_prefill and (self.bc or not self.expert):
+            raise ValueError("expert_prefill replays expert demonstrations: it needs expert=True and bc=False")
         if self.sac.bc_start and (self.bc or not self.expert):
             raise ValueError("bc_start clones expert transitions before SAC: it needs expert=True and bc=False")
-        if self.sac.bc_start < 0:
-            raise ValueError(f"SACConfig.bc_start must be >= 0, got {self.sac.bc_start}")
         if self.sac.expert_bc and (self.bc or not self.expert):
             raise ValueError("expert_bc adds behaviour cloning of expert demonstrations to SAC: it needs expert=True and bc=False")
 

@@ -36,6 +36,7 @@ from mjx_multiarm.geometry.transforms import (
     quat_mul,
     quat_to_mat,
 )
+from mjx_multiarm.options import option
 
 ELEMENT_SIZE = 107
 #: Slices of an element: end-effector pose at t; target poses at t-1 and t.
@@ -126,8 +127,10 @@ class InputFeatures:
     (:func:`rotation_features`). ``goal``: the end effector's error to its target
     appended (:func:`goal_features`). Both off: the element as it is, as the original."""
 
-    rotations: bool = False
-    goal: bool = False
+    rotations: bool = option(False, "the networks see every orientation as two rotation-matrix columns (continuous) "
+                                    "instead of a sign-canonical quaternion (0: the original)")
+    goal: bool = option(False, "the networks see each end effector's position and rotation error to its target besides "
+                               "the two poses (0: the original)", flag="goal_features")
 
     @property
     def size(self) -> int:

@@ -60,6 +60,7 @@ from mjx_multiarm.geometry.kinematics import ArmFrames, forward_kinematics
 from mjx_multiarm.geometry.robot import NUM_JOINTS, ArmModel
 from mjx_multiarm.geometry.scene import Scene, build_scene
 from mjx_multiarm.geometry.transforms import quat_angle
+from mjx_multiarm.options import option
 from mjx_multiarm.tasks.dynamic import PATH_SAMPLES, path_lengths, target_at
 from mjx_multiarm.tasks.types import Tasks
 
@@ -109,15 +110,18 @@ class EnvConfig:
         False restores the colliding arms instead (module rules).
     """
 
-    max_steps: int = 500
-    action_scale: float | tuple[float, ...] | None = None
-    neighbour_radius: float = NEIGHBOUR_RADIUS
-    reward: str = "team"
-    shaping: float = 0.0
-    dynamic_targets: bool = False
-    tolerance: tuple[float, float] = EVAL_TOLERANCE
-    sweep_resolution: float = SWEEP_RESOLUTION
-    end_on_collision: bool = True
+    max_steps: int = option(500, "episode length in control steps", flag="episode_steps")
+    action_scale: float | tuple[float, ...] | None = option(None, "radians of joint motion per unit of action (one number or "
+                                                                  "one per joint; none: full speed at +-1)")
+    neighbour_radius: float = option(NEIGHBOUR_RADIUS, "bases within this distance (m) are observed (0: individualistic)")
+    reward: str = option("team", "reward terms (selfish: the paper's ablation)", choices=tuple(REWARDS))
+    shaping: float = option(0.0, "potential-based reward shaping: every step pays K x the decrease of (position error in m "
+                                 "+ 0.2 x orientation error in rad) (Ng et al. 1999; 0: the paper's reward)")
+    dynamic_targets: bool = option(False, "targets of tasks with a speed move along their paths")
+    tolerance: tuple[float, float] = option(EVAL_TOLERANCE, "(eps_p m, eps_r rad) at reset without a curriculum")
+    sweep_resolution: float = option(SWEEP_RESOLUTION, "largest joint motion (rad) between two collision checks of a step")
+    end_on_collision: bool = option(True, "a collision ends the episode (the paper; evaluation always ends it); 0: the "
+                                          "colliding arms are put back with the collision penalty and the episode goes on")
 
     def __post_init__(self):
         if self.max_steps < 1:

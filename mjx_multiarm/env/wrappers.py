@@ -256,9 +256,13 @@ class Outcomes:
 
 def run_episodes(env: ReachingEnv, policy, params, bank: TaskBank, steps: int | None = None, batch: int = 256) -> Outcomes:
     """Every task of ``bank`` run once from its start for ``steps`` control steps (default:
-    the episode length), ``batch`` tasks per compiled call (the last batch is padded by
-    repeating tasks); ``policy(states, params)`` as in :func:`make_episodes`."""
-    episodes = make_episodes(env, policy, env.config.max_steps if steps is None else steps)
+    the episode length); ``policy(states, params)`` as in :func:`make_episodes`."""
+    return episode_outcomes(make_episodes(env, policy, env.config.max_steps if steps is None else steps), params, bank, batch)
+
+
+def episode_outcomes(episodes, params, bank: TaskBank, batch: int = 256) -> Outcomes:
+    """Every task of ``bank`` run once by ``episodes`` (from :func:`make_episodes`; reuse it
+    to compile once), ``batch`` tasks per call (the last batch is padded by repeating tasks)."""
     size = min(batch, bank.size)
     parts = []
     for start in range(0, bank.size, size):
