@@ -63,6 +63,7 @@ def _mujoco_distances(scene, data, bases, joints, active):
     return out
 
 
+@pytest.mark.slow
 def test_verdicts_agree_with_mujoco_on_10000_random_scenes():
     rng = np.random.default_rng(0)
     scene = build_scene(MAX_ARMS)

@@ -38,6 +38,7 @@ def last_json(capsys) -> dict:
     return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_benchmark_policy_and_birrt_tables(files, tmp_path, capsys):
     common = ["--tasks", str(files / "tasks.npz"), "--episode-steps", "10", "--json"]
     benchmark.main(["--checkpoint", str(files / "policy.npz"), "--out", str(tmp_path / "p"), *common])
@@ -96,6 +97,7 @@ def test_benchmark_neighbour_radius_overrides_the_policy_file(files, monkeypatch
     assert requested == [0.0]
 
 
+@pytest.mark.slow
 def test_latency_cli_reports_percentiles(files):
     out = subprocess.run([sys.executable, "-m", "eval.latency", "--checkpoint", str(files / "policy.npz"), "--calls", "5",
                           "--max-neighbours", "2", "--json"], capture_output=True, text=True, check=True).stdout

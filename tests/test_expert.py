@@ -227,6 +227,7 @@ def test_cli_json_summary(tmp_path, small_tasks, capsys):
 
 
 @pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # Ray starts its processes by fork + exec
+@pytest.mark.slow
 def test_ray_backend_matches_local(tmp_path, small_tasks):
     ray = pytest.importorskip("ray")
     tasks_file = tmp_path / "tasks.npz"

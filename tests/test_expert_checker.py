@@ -30,7 +30,8 @@ def _kernel_distance(num_arms, pos, quat, joints):
     return np.asarray(contacts.min_distance).min(axis=-1)
 
 
-@pytest.mark.parametrize("num_arms, count", [(1, 600), (2, 600), (4, 300), (10, 100)])
+@pytest.mark.parametrize("num_arms, count", [(1, 600), (2, 600), pytest.param(4, 300, marks=pytest.mark.slow),
+                                              pytest.param(10, 100, marks=pytest.mark.slow)])
 def test_verdicts_match_the_jax_kernel(num_arms, count):
     """Random scenes (self, ground and between-arm contacts all occur): identical verdicts,
     except within float32 rounding of contact (the kernel's precision)."""

@@ -10,6 +10,8 @@ import pytest
 
 NOTEBOOKS = pathlib.Path(__file__).resolve().parents[1] / "notebooks"
 
+pytestmark = pytest.mark.slow  # the notebooks end to end
+
 
 @pytest.mark.parametrize("name", ["quickstart", "reproduce"])
 def test_notebook_runs(name, tmp_path, monkeypatch):

@@ -28,6 +28,7 @@ def _final_actor(run_dir, field="actor"):
     return jax.tree.leaves(restored["state"]["agent"][field])
 
 
+@pytest.mark.slow
 def test_cli_runs_end_to_end_and_resumes_exactly(tmp_path, capsys):
     whole = tmp_path / "whole"
     sac.main(["--preset", "tiny", "--run-dir", str(whole), "--workers", "1", "--steps", "400", "--json"])
@@ -56,6 +57,7 @@ def test_cli_runs_end_to_end_and_resumes_exactly(tmp_path, capsys):
         sac.main(["--resume", str(tmp_path / "nowhere")])
 
 
+@pytest.mark.slow
 def test_team_options_and_a_task_file_subset(tmp_path, capsys):
     """The team options end to end: per-team curriculum levels in metrics and summary,
     rotation features in the exported policy; --task-limit N of a task file without an
@@ -117,6 +119,7 @@ def test_inconsistent_flags_fail_before_the_run_starts(tmp_path, flags, message)
     assert not run_dir.exists()
 
 
+@pytest.mark.slow
 def test_train_api_logs_heldout_success_during_training(tmp_path):
     """``train()`` in-process: the result's policy, summary and metrics; the deployed policy
     evaluated on held-out tasks during training (per team size, in metrics.csv and the

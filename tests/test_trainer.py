@@ -170,6 +170,7 @@ print("sharded ok", int(state.env_steps))
 """
 
 
+@pytest.mark.slow
 def test_data_parallel_over_two_host_devices(tmp_path):
     """The training iteration splits environments and batches across 2 (forced host) devices."""
     script = tmp_path / "sharded.py"

@@ -1,8 +1,9 @@
 """The multi-arm reaching environment (paper sections 4.2-4.3) as pure JAX functions.
 
-:class:`ReachingEnv` follows the MuJoCo Playground / Brax style: ``reset(rng, task)`` and
-``step(state, actions)`` are pure functions of pytrees, so ``jax.vmap`` runs thousands of
-environments at once and ``jax.jit`` wraps whole ``lax.scan`` rollouts. One compiled
+:class:`ReachingEnv`: ``reset(rng, task)`` and ``step(state, actions)`` are pure functions
+of pytrees, so ``jax.vmap`` runs thousands of environments at once and ``jax.jit`` wraps
+whole ``lax.scan`` rollouts (Brax's ``Env`` and JaxMARL's ``MultiAgentEnv`` views of it:
+:mod:`mjx_multiarm.env.brax_env`, :mod:`mjx_multiarm.env.jaxmarl_env`). One compiled
 function serves every team size: a task occupies the first of the scene's ``max_arms`` slots
 and the rest are masked.
 
@@ -259,8 +260,9 @@ class ReachingEnv:
     def reset(self, rng, task: Tasks, tolerance=None) -> State:
         """The state at the start of ``task`` (one row of a device task bank).
 
-        ``rng`` is accepted for the Brax/Playground signature; a task fixes its episode, so
-        reset draws nothing. ``tolerance`` (eps_p, eps_r) defaults to ``config.tolerance``.
+        A task fixes its episode, so reset draws nothing from ``rng``; the standard interfaces
+        (:mod:`mjx_multiarm.env.brax_env`, :mod:`mjx_multiarm.env.jaxmarl_env`) draw the task
+        from a bank with theirs. ``tolerance`` (eps_p, eps_r) defaults to ``config.tolerance``.
         """
         del rng
         self._check_task(task)
