@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import pathlib
 
+import jax
 import numpy as np
 import pytest
 from hypothesis import settings
@@ -17,6 +19,13 @@ settings.register_profile("untimed", deadline=None)
 settings.load_profile("untimed")
 
 REFERENCE = pathlib.Path(__file__).resolve().parents[2] / "shared" / "reference" / "ur5"
+
+# Compiled programs persist between test runs (and are shared by the xdist workers of one),
+# so a re-run between edits compiles only what changed. MJX_MULTIARM_TEST_CACHE="" turns it off.
+_CACHE = os.environ.get("MJX_MULTIARM_TEST_CACHE", str(pathlib.Path(__file__).resolve().parent / ".jax_cache"))
+if _CACHE:
+    jax.config.update("jax_compilation_cache_dir", _CACHE)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
 @pytest.fixture
