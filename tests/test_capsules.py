@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mjx_multiarm import capsule_fit
 from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.reference import capsule_fit
 
 
 def _link_capsules(link: str):

@@ -195,6 +195,7 @@ def test_every_slot_count_compiles_and_has_consistent_pairs(num_arms):
         np.testing.assert_array_equal(pairs.between_arms, pairs.between_arms.T)
 
 
+@pytest.mark.slow
 def test_chunked_and_whole_batch_checks_agree():
     rng = np.random.default_rng(3)
     scene = build_scene(4)

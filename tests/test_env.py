@@ -177,7 +177,7 @@ def test_moving_the_whole_scene_changes_no_observation_or_reward(generated):
     assert np.asarray(here.reward).any()
 
 
-@pytest.mark.parametrize("shaping", [0.0, 0.5])
+@pytest.mark.parametrize("shaping", [0.0, pytest.param(0.5, marks=pytest.mark.slow)])
 def test_hindsight_targets_equal_an_episode_run_with_those_targets(generated, shaping):
     """Relabelling step t with the poses reached at step k gives exactly what the environment
     returns when the same actions are run on the task whose targets are those poses."""
@@ -209,6 +209,7 @@ def test_hindsight_targets_equal_an_episode_run_with_those_targets(generated, sh
         ReachingEnv(3, EnvConfig(dynamic_targets=True)).with_achieved_targets(goal, goal, goal)
 
 
+@pytest.mark.slow
 def test_three_arm_task_is_identical_in_three_and_ten_slots(generated):
     tasks = take(generated, np.flatnonzero(generated.num_arms == 3)[:4])
     small, large = ReachingEnv(3, EnvConfig(max_steps=40)), ReachingEnv(10, EnvConfig(max_steps=40))
@@ -293,6 +294,7 @@ def test_restoring_colliding_arms_keeps_the_episode_going():
     assert float(contacts(jnp.asarray(joints, jnp.float32)).min()) >= 0
 
 
+@pytest.mark.slow
 def test_thin_obstacle_is_not_tunnelled_through_in_one_step():
     """Full-speed steps whose end points are both free but which pass through the other arm.
 

@@ -106,6 +106,7 @@ def test_latency_cli_reports_percentiles(files):
     assert all(0 < p50 <= p99 for p50, p99 in zip(result["p50_ms"], result["p99_ms"]))
 
 
+@pytest.mark.slow
 def test_render_frames_show_the_arms(files):
     planner = Planner.load(files / "policy.npz")
     tasks = generate_chunk(GenerationSpec(count=1, arm_counts=(2,), mode="static", seed=5, max_arms=2), 0)

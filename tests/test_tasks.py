@@ -76,6 +76,7 @@ def test_original_layout_walks_bases_and_reaches_past_the_paper_bins():
     assert 0.2 < (four > 0.5).mean() and four.max() > 0.85  # beyond the paper's last bin, as the original's tasks
 
 
+@pytest.mark.slow
 def test_original_layout_tasks_are_valid_and_deterministic():
     spec = GenerationSpec(count=8, arm_counts=(1, 2, 3, 4), seed=5, chunk_size=8, layout="original")
     tasks = generate_chunk(spec, 0)

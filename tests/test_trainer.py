@@ -126,14 +126,17 @@ def test_hindsight_goals_come_from_the_same_episode(one_arm):
     ({"noise_decay": -1.0}, "noise_decay must be >= 0"),
     ({"hindsight": -1}, "hindsight must be >= 0"),
     ({"hindsight": 2, "bc": True}, "behaviour cloning"),
-    ({"sac": SACConfig(expert_bc=-1.0)}, "expert_bc must be >= 0"),
-    ({"sac": SACConfig(policy_average=1.5)}, r"policy_average must be in \[0, 1\]"),
-    ({"sac": SACConfig(expert_bc=1.0), "expert": False}, "expert_bc adds behaviour cloning"),
-    ({"sac": SACConfig(expert_bc=1.0), "bc": True}, "expert_bc adds behaviour cloning"),
+    ({"sac": {"expert_bc": -1.0}}, "expert_bc must be >= 0"),
+    ({"sac": {"policy_average": 1.5}}, r"policy_average must be in \[0, 1\]"),
+    ({"sac": {"gamma": 1.5}}, r"gamma must be in \(0, 1\]"),
+    ({"sac": {"expert_bc": 1.0}, "expert": False}, "expert_bc adds behaviour cloning"),
+    ({"sac": {"expert_bc": 1.0}, "bc": True}, "expert_bc adds behaviour cloning"),
+    ({"expert_prefill": 8, "expert": False}, "expert_prefill replays expert demonstrations"),
 ])
 def test_inconsistent_train_configs_are_rejected(overrides, message):
+    """Each class checks its own fields (SACConfig's when it is built), TrainConfig the combinations."""
     with pytest.raises(ValueError, match=message):
-        TrainConfig(**overrides)
+        TrainConfig(**{k: SACConfig(**v) if k == "sac" else v for k, v in overrides.items()})
 
 
 def test_failed_queue_is_a_bounded_fifo():

@@ -31,8 +31,8 @@ import pathlib
 import mujoco
 import numpy as np
 
-from mjx_multiarm import capsule_fit
 from mjx_multiarm.geometry.robot import ARM_XML
+from mjx_multiarm.reference import capsule_fit
 
 #: Links in chain order (the arm MJCF's bodies 1..8); ``ee_link`` is the gripper box.
 LINKS = (*capsule_fit.LINK_MESHES, "ee_link")
