@@ -333,9 +333,10 @@ def test_tolerance_is_state_and_reward_variants(generated):
     for reward in ("team", "selfish"):
         env = ReachingEnv(2, EnvConfig(reward=reward, max_steps=3))
         step = jax.jit(jax.vmap(env.step))
+        reset = jax.jit(jax.vmap(lambda task, tolerance: env.reset(None, task, tolerance), in_axes=(0, None)))
         zero = jnp.zeros((3, 2, 6))
-        tight = step(jax.vmap(lambda task: env.reset(None, task))(tasks), zero)
-        loose = step(jax.vmap(lambda task: env.reset(None, task, (10.0, 4.0)))(tasks), zero)
+        tight = step(reset(tasks, jnp.asarray(env.config.tolerance)), zero)
+        loose = step(reset(tasks, jnp.asarray((10.0, 4.0))), zero)
         assert step._cache_size() == 1  # a new tolerance is data, not a new compilation
         assert not np.asarray(tight.success).any() and np.asarray(loose.success).all()
         rewards[reward] = np.asarray(loose.reward)

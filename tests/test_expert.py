@@ -243,6 +243,7 @@ def test_ray_backend_matches_local(tmp_path, small_tasks):
     _same_experts(local, distributed)
 
 
+@pytest.mark.slow
 def test_replanning_baseline_follows_moving_targets(small_tasks):
     env = ReachingEnv(2, EnvConfig(dynamic_targets=True, max_steps=300))
     results = [replan_episode(env, small_tasks, i, PlannerConfig(time_limit=20)) for i in (0, 3)]

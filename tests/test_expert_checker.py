@@ -44,6 +44,7 @@ def test_verdicts_match_the_jax_kernel(num_arms, count):
     np.testing.assert_array_equal(verdicts[clear], distance[clear] < 0.0)
 
 
+@pytest.mark.slow
 def test_margin_counts_near_contact_as_contact():
     pos, quat, joints = _random_scenes(np.random.default_rng(7), 300, 2)
     distance = _kernel_distance(2, pos, quat, joints)

@@ -90,6 +90,7 @@ def test_original_layout_tasks_are_valid_and_deterministic():
         GenerationSpec(count=8, arm_counts=(2,), layout="circle")
 
 
+@pytest.mark.slow
 def test_generation_is_deterministic_and_resumable(tmp_path, monkeypatch):
     spec = GenerationSpec(count=12, arm_counts=(1, 2, 3), mode="static", seed=11, chunk_size=5)
     reference = generate_dataset(spec, tmp_path / "straight.npz")

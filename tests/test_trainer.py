@@ -68,6 +68,7 @@ def test_expert_experience_enters_only_for_failed_episodes(one_arm):
     assert int(state.expert_steps) == 0 and int(state.failed.count) == 0
 
 
+@pytest.mark.slow
 def test_noise_schedule_narrows_exploration_at_tight_levels(one_arm):
     """With noise_decay 1 at the last level (1 cm, a tenth of the first level's 10 cm) the
     rollout actions stay within a tenth of the fixed standard-deviation bound of the mean
