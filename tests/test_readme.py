@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pathlib
 import re
+import textwrap
 
 import pytest
 
@@ -19,7 +20,7 @@ def test_readme_has_examples():
 @pytest.mark.slow
 def test_readme_example_runs(index, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # examples that write (run directories) write here
-    exec(compile(BLOCKS[index], f"README.md python block {index}", "exec"), {})
+    exec(compile(textwrap.dedent(BLOCKS[index]), f"README.md python block {index}", "exec"), {})  # blocks in lists are indented
 
 
 def _layout_paths() -> list[str]:
