@@ -35,7 +35,7 @@ from collections.abc import Callable
 import jax
 
 from mjx_multiarm.files import atomic_write
-from mjx_multiarm.options import from_dict, to_dict
+from mjx_multiarm.options import from_dict, leaves, to_dict, value_at
 from mjx_multiarm.planner.policy import policy_env_settings
 from mjx_multiarm.planner.policy_file import LoadedPolicy, load_policy, save_policy
 from train.checkpoint import Checkpoints
@@ -152,7 +152,7 @@ def train(config: RunConfig, run_dir: str | os.PathLike, *, resume: bool = False
     if resume:
         saved = load_config(run_dir)
         if dataclasses.replace(saved, budget=config.budget) != config:
-            changed = sorted(k for k, v in _flat(to_dict(config)).items() if _flat(to_dict(saved)).get(k) != v)
+            changed = [leaf.path for leaf in leaves(RunConfig) if value_at(config, leaf.path) != value_at(saved, leaf.path)]
             raise ValueError(f"{run_dir}: resuming changes {changed}; only the budget may change on resume")
     elif (run_dir / CONFIG_FILE).exists():
         raise ValueError(f"{run_dir} already holds a run; resume it or use another run directory")
@@ -245,14 +245,3 @@ def train(config: RunConfig, run_dir: str | os.PathLike, *, resume: bool = False
     })
     atomic_write(run_dir / "summary.json", lambda f: f.write(json.dumps(summary, indent=2).encode()))
     return TrainResult(run_dir, config, load_policy(run_dir / "policy.npz"), summary, rows)
-
-
-def _flat(tree: dict, prefix: str = "") -> dict:
-    """{"a.b": leaf} of a nested dict."""
-    flat = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat.update(_flat(value, f"{prefix}{key}."))
-        else:
-            flat[prefix + key] = value
-    return flat
