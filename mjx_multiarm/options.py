@@ -84,11 +84,11 @@ def _coerce(tp, value, where: str):
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
-        if isinstance(value, (list, tuple)):
-            tp = next(a for a in args if typing.get_origin(a) is tuple)
-            return _coerce(tp, value, where)
-        tp = next(a for a in args if a is not type(None) and typing.get_origin(a) is not tuple)
-        return _coerce(tp, value, where)
+        sequence = isinstance(value, (list, tuple))
+        match = next((a for a in args if a is not type(None) and (typing.get_origin(a) is tuple) == sequence), None)
+        if match is None:
+            raise ValueError(f"{where}: expected {tp}, got {value!r}")
+        return _coerce(match, value, where)
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
             raise ValueError(f"{where}: expected a list, got {value!r}")
