@@ -11,7 +11,10 @@ chase targets moving at the task's speed. An episode succeeds when every arm is 
 2 cm / 0.1 rad at the same step before ``--episode-steps`` (default 500, the paper's) and
 without any collision. BiRRT static: plan start -> goal, then execute the plan (its steps
 are replayed with the environment's rules before it counts); dynamic: the re-planning loop
-of :mod:`mjx_multiarm.expert.replan`.
+of :mod:`mjx_multiarm.expert.replan`. ``--safe`` runs the policy with safe execution
+(:mod:`mjx_multiarm.env.shield`: every team step checked before it is executed, colliding
+motions reversed or held), beyond the paper: no collisions, and its failures are timeouts
+(deadlocks).
 
 Writes ``static.md`` / ``static.csv`` (success by team size x difficulty bin, with the
 paper's numbers), ``dynamic.md`` / ``dynamic.csv`` (by target speed), and
@@ -73,13 +76,14 @@ def generated_test_tasks(per_team: int, arms: tuple[int, ...], seed: int) -> Tas
     return concatenate([generate_chunk(spec, c) for c in range(spec.num_chunks)])
 
 
-def load_planner(checkpoint: pathlib.Path | None, neighbour_radius: float | None = None) -> Planner:
+def load_planner(checkpoint: pathlib.Path | None, neighbour_radius: float | None = None, safe: bool = False) -> Planner:
     """The planner of a policy file, or of a run directory's ``policy.npz``; ``neighbour_radius``
-    (m) replaces the radius the file records (0 blinds the policy to its neighbours)."""
+    (m) replaces the radius the file records (0 blinds the policy to its neighbours); ``safe``
+    shields every team step."""
     path = SHIPPED_POLICY if checkpoint is None else checkpoint
     if path.is_dir():
         path = path / "policy.npz"
-    return Planner.load(path, neighbour_radius)
+    return Planner.load(path, neighbour_radius, safe)
 
 
 def policy_outcomes(planner: Planner, tasks: Tasks, dynamic: bool, episode_steps: int, batch: int = 256) -> Outcomes:
@@ -190,6 +194,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--neighbour-radius", type=float, metavar="M",
                         help="observe neighbour bases within M metres instead of the radius the policy file records "
                              "(0: the policy sees only its own arm, as the individualistic ablation)")
+    parser.add_argument("--safe", action="store_true",
+                        help="safe execution: every team step is checked before it is executed and colliding motions are "
+                             "reversed or held (no collisions; failures are deadlocks, counted as timeouts)")
     parser.add_argument("--episode-steps", type=int, default=500, help="control steps per episode (default 500, the paper's)")
     parser.add_argument("--iterations", type=int, default=PlannerConfig.iterations, help="BiRRT iteration cap per plan")
     parser.add_argument("--seed", type=int, default=0)
@@ -230,9 +237,9 @@ def main(argv=None) -> None:
         else:
             print(f"generating {args.per_team} test tasks per team size {args.arms}...", file=sys.stderr)
             tasks = generated_test_tasks(args.per_team, arms, args.seed + 20_000)
-        if args.neighbour_radius is not None and args.planner != "policy":
-            raise ValueError("--neighbour-radius applies to --planner policy only")
-        planner = load_planner(args.checkpoint, args.neighbour_radius) if args.planner == "policy" else None
+        if (args.neighbour_radius is not None or args.safe) and args.planner != "policy":
+            raise ValueError("--neighbour-radius and --safe apply to --planner policy only")
+        planner = load_planner(args.checkpoint, args.neighbour_radius, args.safe) if args.planner == "policy" else None
     except (ValueError, FileNotFoundError, argparse.ArgumentTypeError) as error:
         sys.exit(f"error: {error}")
     out = args.out or pathlib.Path("runs") / f"benchmark-{args.planner}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -250,6 +257,7 @@ def main(argv=None) -> None:
     report, rows = {"planner": args.planner}, []
     if planner is not None:
         report["neighbour_radius"] = planner.env_config.neighbour_radius
+        report["safe"] = planner.env_config.safe
     for mode in modes:
         subset = tasks if mode == "static" else take(tasks, tasks.has_dynamic_mode)
         clock = time.perf_counter()

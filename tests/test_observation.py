@@ -89,3 +89,32 @@ def test_quaternions_are_expressed_in_the_observer_frame(scene):
     expected = np.where(np.asarray(expected)[:, :1] < 0, -np.asarray(expected), np.asarray(expected))
     np.testing.assert_allclose(own[:, 3:], expected, atol=1e-6)
     assert (own[:, 3] >= 0).all()
+
+
+def test_nearness_features_are_the_link_point_distances_to_each_observed_arm(scene):
+    """For every observer and every arm it sees: per own link point the distance to that
+    arm's nearest link point (brute force in the world frame), the closing speed of the
+    smallest one since t-1, and a vector as long as that smallest distance; the observer's
+    own element reads as far; appended after the goal features."""
+    from mjx_multiarm.env.observation import CLOSING_SCALE, NEARNESS_CAP, InputFeatures, nearness_features
+
+    bases, joints, previous, targets = scene
+    pos, quat, now = _snapshot(bases, joints, targets)
+    _, _, before = _snapshot(bases, previous, targets)
+    active = jnp.ones(5, bool)
+    obs, mask = observe(pos, quat, active, before, now, radius=10.0)
+    features = np.asarray(nearness_features(obs))
+    assert features.shape == (5, 5, 14) and np.asarray(mask).all()
+    own_now, own_before = np.asarray(now.points, np.float64), np.asarray(before.points, np.float64)
+    dist = lambda a, b: np.linalg.norm(a[:, None] - b[None], axis=-1)  # noqa: E731
+    for i in range(5):
+        np.testing.assert_allclose(features[i, -1], np.r_[np.full(10, NEARNESS_CAP), np.zeros(4)])
+        seen = np.argsort(-np.linalg.norm(bases[:, :2] - bases[i, :2], axis=-1), kind="stable")[:-1]  # farthest first
+        for slot, j in enumerate(seen):
+            d_now, d_before = dist(own_now[i], own_now[j]), dist(own_before[i], own_before[j])
+            np.testing.assert_allclose(features[i, slot, :10], np.minimum(d_now.min(axis=1), NEARNESS_CAP), atol=2e-5)
+            np.testing.assert_allclose(features[i, slot, 10], CLOSING_SCALE * (d_before.min() - d_now.min()), atol=3e-4)
+            np.testing.assert_allclose(np.linalg.norm(features[i, slot, 11:]), d_now.min(), atol=2e-5)
+    both = np.asarray(InputFeatures(goal=True, nearness=True)(obs))
+    assert both.shape == (5, 5, 127) == (5, 5, InputFeatures(goal=True, nearness=True).size)
+    np.testing.assert_array_equal(both[..., -14:], features)

@@ -50,6 +50,15 @@ TARGET_POSITION, TARGET_QUAT = slice(TARGET_POSE.start, TARGET_POSE.start + 3), 
 #: Goal-error features: 1 cm of position error -> 0.1, and the rotation error (rad, small angles).
 GOAL_POSITION_SCALE = 10.0
 GOAL_FEATURES = 6
+#: Link points of an element at t-1 and t ([10 x 3] each).
+POINTS_PREV, POINTS = slice(40, 70), slice(70, 100)
+#: Nearness features: per own link point its distance to the element's nearest point (10),
+#: how fast the smallest such distance closes (1), the vector between the closest pair (3).
+NEARNESS_FEATURES = 14
+#: Distances are capped here (m): beyond it a neighbour is simply far.
+NEARNESS_CAP = 1.0
+#: Closing speed scale: metres per step x this (a full-speed approach is ~0.1 m per step).
+CLOSING_SCALE = 10.0
 #: Default neighbour radius (m): two workspace radii, as in the original code.
 NEIGHBOUR_RADIUS = 1.7
 
@@ -125,22 +134,32 @@ class InputFeatures:
 
     ``rotations``: quaternions replaced by two rotation-matrix columns
     (:func:`rotation_features`). ``goal``: the end effector's error to its target
-    appended (:func:`goal_features`). Both off: the element as it is, as the original."""
+    appended (:func:`goal_features`). ``nearness``: how close each element's arm is to the
+    observing arm appended (:func:`nearness_features`). All off: the element as it is, as
+    the original."""
 
     rotations: bool = option(False, "the networks see every orientation as two rotation-matrix columns (continuous) "
                                     "instead of a sign-canonical quaternion (0: the original)")
     goal: bool = option(False, "the networks see each end effector's position and rotation error to its target besides "
                                "the two poses (0: the original)", flag="goal_features")
+    nearness: bool = option(False, "the networks see, for each observed arm, the distances from the observing arm's link "
+                                   "points to its nearest link points, their closing speed and direction (0: the original)",
+                            flag="nearness_features")
 
     @property
     def size(self) -> int:
         """Length of a transformed element."""
-        return ELEMENT_SIZE + 2 * len(QUATERNIONS) * self.rotations + GOAL_FEATURES * self.goal
+        return (ELEMENT_SIZE + 2 * len(QUATERNIONS) * self.rotations + GOAL_FEATURES * self.goal
+                + NEARNESS_FEATURES * self.nearness)
 
     def __call__(self, obs):
-        """Elements [..., 107] -> [..., size]."""
-        out = rotation_features(obs) if self.rotations else obs
-        return jnp.concatenate([out, goal_features(obs)], axis=-1) if self.goal else out
+        """Observation sequences [..., L, 107] (the observing arm last) -> [..., L, size]."""
+        parts = [rotation_features(obs) if self.rotations else obs]
+        if self.goal:
+            parts.append(goal_features(obs))
+        if self.nearness:
+            parts.append(nearness_features(obs))
+        return jnp.concatenate(parts, axis=-1) if len(parts) > 1 else parts[0]
 
 
 def goal_features(obs):
@@ -152,6 +171,38 @@ def goal_features(obs):
     position = GOAL_POSITION_SCALE * (obs[..., TARGET_POSITION] - obs[..., EE_POSITION])
     error = canonical_quat(quat_mul(quat_conjugate(obs[..., EE_QUAT]), obs[..., TARGET_QUAT]))
     return jnp.concatenate([position, 2.0 * error[..., 1:]], axis=-1)
+
+
+def _nearest(own, other):
+    """Per own point [..., 10] the distance to the nearest point of ``other``, and the index
+    of that point; points [..., 30] flattened."""
+    a, b = own.reshape(*own.shape[:-1], -1, 1, 3), other.reshape(*other.shape[:-1], 1, -1, 3)
+    distance = jnp.linalg.norm(a - b, axis=-1)  # [..., 10, 10]
+    return distance.min(axis=-1), distance.argmin(axis=-1)
+
+
+def nearness_features(obs):
+    """[..., L, 14] of observation sequences [..., L, 107] whose last element is the
+    observing arm: for each element's arm, the distance from each of the observer's 10 link
+    points to that arm's nearest link point (capped at :data:`NEARNESS_CAP`), how fast the
+    smallest of them closed since t-1 (x :data:`CLOSING_SCALE`), and the vector from the
+    observer's closest point to the arm's closest point (observer's frame). Decentralized:
+    computed from what the arm observes. The observer's own element reads as far (cap, 0).
+    """
+    own = obs[..., -1:, :]
+    now, nearest = _nearest(own[..., POINTS], obs[..., POINTS])
+    before, _ = _nearest(own[..., POINTS_PREV], obs[..., POINTS_PREV])
+    closest = now.argmin(axis=-1)  # [..., L] the observer's point nearest this arm
+    own_points = own[..., POINTS].reshape(*own.shape[:-1], -1, 3)  # [..., 1, 10, 3]
+    other_points = obs[..., POINTS].reshape(*obs.shape[:-1], -1, 3)  # [..., L, 10, 3]
+    start = jnp.take_along_axis(own_points, closest[..., None, None], axis=-2)[..., 0, :]
+    target = jnp.take_along_axis(nearest, closest[..., None], axis=-1)
+    end = jnp.take_along_axis(other_points, target[..., None], axis=-2)[..., 0, :]
+    closing = CLOSING_SCALE * (before.min(axis=-1) - now.min(axis=-1))
+    features = jnp.concatenate([jnp.minimum(now, NEARNESS_CAP), closing[..., None], end - start], axis=-1)
+    is_self = jnp.arange(obs.shape[-2]) == obs.shape[-2] - 1
+    far = jnp.concatenate([jnp.full(10, NEARNESS_CAP), jnp.zeros(4)]).astype(obs.dtype)
+    return jnp.where(is_self[:, None], far, features)
 
 
 def rotation_features(obs):

@@ -52,6 +52,7 @@ from mjx_multiarm.env.observation import (
     observe,
     retarget,
 )
+from mjx_multiarm.env.shield import PROPOSED, shielded_joints
 from mjx_multiarm.geometry.collision import (
     SWEEP_RESOLUTION,
     num_substeps,
@@ -109,6 +110,9 @@ class EnvConfig:
       sweep_resolution: largest joint motion (rad) between two collision checks of a step.
       end_on_collision: a collision ends the episode (the paper's rule, and evaluation's);
         False restores the colliding arms instead (module rules).
+      safe: every team step goes through :func:`mjx_multiarm.env.shield.shielded_joints`
+        (collision-free execution; ``metrics["shielded"]`` marks the arms whose motion was
+        reversed or held). Off for the paper's metric.
     """
 
     max_steps: int = option(500, "episode length in control steps", flag="episode_steps")
@@ -123,6 +127,8 @@ class EnvConfig:
     sweep_resolution: float = option(SWEEP_RESOLUTION, "largest joint motion (rad) between two collision checks of a step")
     end_on_collision: bool = option(True, "a collision ends the episode (the paper; evaluation always ends it); 0: the "
                                           "colliding arms are put back with the collision penalty and the episode goes on")
+    safe: bool = option(False, "safe execution (deployment, beyond the paper): every team step is shielded so that it never "
+                               "collides (mjx_multiarm.env.shield: colliding motions reversed or held)")
 
     def __post_init__(self):
         if self.max_steps < 1:
@@ -290,7 +296,8 @@ class ReachingEnv:
             step=step,
             tolerance=tolerance,
             target_lengths=lengths,
-            metrics={"min_distance": jnp.full(self.max_arms, jnp.inf, jnp.float32), "nonfinite_action": no},
+            metrics={"min_distance": jnp.full(self.max_arms, jnp.inf, jnp.float32), "nonfinite_action": no}
+            | ({"shielded": no} if self.config.safe else {}),
         )
 
     def step(self, state: State, actions) -> State:
@@ -301,9 +308,16 @@ class ReachingEnv:
         task = state.task
         finite = jnp.isfinite(actions)
         joints = self.next_joints(state.joints, actions, task.active)
-        frames = self._pose(task, joints)
-        contacts = swept_contacts(self.scene, task.base_pos, task.base_quat, state.joints, joints, task.active, self.substeps,
-                                  end_frames=frames)
+        metrics = {}
+        if self.config.safe:
+            joints, motion, contacts = shielded_joints(self.scene, task.base_pos, task.base_quat, state.joints, joints,
+                                                       task.active, self.substeps, self.joint_range)
+            frames = self._pose(task, joints)
+            metrics["shielded"] = motion != PROPOSED
+        else:
+            frames = self._pose(task, joints)
+            contacts = swept_contacts(self.scene, task.base_pos, task.base_quat, state.joints, joints, task.active,
+                                      self.substeps, end_frames=frames)
         collided = contacts.collided & task.active
         if not self.config.end_on_collision:  # training option: the colliding arms go back
             joints = jnp.where(collided[:, None], state.joints, joints)
@@ -322,7 +336,7 @@ class ReachingEnv:
             step=step,
             tolerance=state.tolerance,
             target_lengths=state.target_lengths,
-            metrics={"min_distance": contacts.min_distance, "nonfinite_action": task.active & ~finite.all(axis=-1)},
+            metrics={"min_distance": contacts.min_distance, "nonfinite_action": task.active & ~finite.all(axis=-1), **metrics},
             **self._outcome(task, state.arms, arms, collided, state.tolerance, step),
         )
         finished = state.replace(reward=jnp.zeros_like(state.reward))

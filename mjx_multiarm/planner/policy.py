@@ -5,10 +5,14 @@
     planner = Planner.load()                      # the policy shipped with the package
     next_joints = planner.step(joints, base_poses, targets)           # numpy in, numpy out
     path = planner.rollout(joints, base_poses, targets, steps=200)    # waypoints until reached
+    safe = Planner.load(safe=True)                # every team step shielded: never collides
 
 Each call evaluates every arm's policy on its own decentralized observation (its
 neighbours within the policy's radius) and returns the next joint waypoint of every arm
-(one control step of 50 ms, within the velocity and joint limits). Arms may stand anywhere
+(one control step of 50 ms, within the velocity and joint limits). With ``safe=True`` each
+team step is first checked with the swept collision check, and colliding motions are
+reversed or held (:mod:`mjx_multiarm.env.shield`): the waypoints never collide in the
+model (given a collision-free start). Arms may stand anywhere
 and there may be any number of them: the observation is built for exactly the arms given.
 :meth:`Planner.batched` is the jittable JAX path for batches of teams.
 
@@ -31,6 +35,8 @@ from flax import nnx, struct
 
 from mjx_multiarm.env.observation import ArmSnapshot, observe
 from mjx_multiarm.env.reaching import EVAL_TOLERANCE, EnvConfig, ReachingEnv
+from mjx_multiarm.env.shield import shielded_joints
+from mjx_multiarm.geometry.collision import scene_contacts, swept_contacts
 from mjx_multiarm.geometry.evaluate import base_pose_arrays, check_finite
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import NUM_JOINTS
@@ -51,12 +57,18 @@ class PlannedPath:
       reached: bool, every arm within tolerance at the last waypoint.
       position_error: [n] end-effector distance to the target (m) at the last waypoint.
       angle_error: [n] orientation error (rad) at the last waypoint.
+      min_distance: [n] each arm's smallest signed distance (m) to the other arms, itself
+        and the ground along the path (the start and every motion between waypoints,
+        swept); negative where it collides.
+      collided: bool, some arm collides along the path (``min_distance < 0``).
     """
 
     waypoints: np.ndarray
     reached: np.ndarray
     position_error: np.ndarray
     angle_error: np.ndarray
+    min_distance: np.ndarray
+    collided: np.ndarray
 
 
 def policy_env_settings(env: ReachingEnv) -> dict:
@@ -67,9 +79,10 @@ def policy_env_settings(env: ReachingEnv) -> dict:
 class Planner:
     """Closed-loop planner from a policy file (see the module docstring)."""
 
-    def __init__(self, policy: LoadedPolicy, neighbour_radius: float | None = None):
+    def __init__(self, policy: LoadedPolicy, neighbour_radius: float | None = None, safe: bool = False):
         """``neighbour_radius`` (m) replaces the radius the policy file records (0 blinds the
-        policy to its neighbours, as the individualistic ablation)."""
+        policy to its neighbours, as the individualistic ablation); ``safe`` shields every
+        team step (module docstring)."""
         self.policy = policy
         env = policy.env
         action_scale = np.asarray(env["action_scale"], np.float64)
@@ -77,14 +90,14 @@ class Planner:
             raise ValueError(f"policy file: env.action_scale has shape {action_scale.shape}, expected ({NUM_JOINTS},)")
         #: The environment settings the policy was trained with (or the radius given).
         radius = float(env["neighbour_radius"]) if neighbour_radius is None else neighbour_radius
-        self.env_config = EnvConfig(action_scale=tuple(action_scale.tolist()), neighbour_radius=radius)
+        self.env_config = EnvConfig(action_scale=tuple(action_scale.tolist()), neighbour_radius=radius, safe=safe)
         self._actor_def, self._actor = nnx.split(policy.actor)
         self._compiled: dict = {}
 
     @classmethod
-    def load(cls, path: str | os.PathLike | None = None, neighbour_radius: float | None = None) -> Planner:
+    def load(cls, path: str | os.PathLike | None = None, neighbour_radius: float | None = None, safe: bool = False) -> Planner:
         """The planner of policy file ``path`` (default: the shipped policy)."""
-        return cls(load_policy(SHIPPED_POLICY if path is None else path), neighbour_radius)
+        return cls(load_policy(SHIPPED_POLICY if path is None else path), neighbour_radius, safe)
 
     def environment(self, num_arms: int, **settings) -> ReachingEnv:
         """An environment of ``num_arms`` slots with the policy's action scale and neighbour
@@ -130,15 +143,21 @@ class Planner:
             def rollout(params, base_pos, base_quat, start, target_pos, target_quat):
                 actor, targets = nnx.merge(actor_def, params), (target_pos, target_quat)
 
+                active = jnp.ones(start.shape[:-1], bool)
+
                 def body(carry, _):
                     prev, joints = carry
                     following = _policy_joints(env, actor, base_pos, base_quat, prev, joints, targets, targets)
-                    return (joints, following), following
+                    swept = swept_contacts(env.scene, base_pos, base_quat, joints, following, active, env.substeps)
+                    return (joints, following), (following, swept.min_distance)
 
-                _, path = jax.lax.scan(body, (start, start), None, length=steps)
+                _, (path, distance) = jax.lax.scan(body, (start, start), None, length=steps)
                 waypoints = jnp.concatenate([start[None], path])
+                distance = jnp.concatenate([scene_contacts(env.scene, base_pos, base_quat, start, active).min_distance[None],
+                                            distance])
                 frames = jax.vmap(lambda q: forward_kinematics(env.scene.arm, base_pos, base_quat, q))(waypoints)
-                return waypoints, jnp.linalg.norm(frames.ee_pos - target_pos, axis=-1), quat_angle(frames.ee_quat, target_quat)
+                return (waypoints, jnp.linalg.norm(frames.ee_pos - target_pos, axis=-1), quat_angle(frames.ee_quat, target_quat),
+                        distance)
 
             self._compiled["rollout", num_arms, steps] = jax.jit(rollout)
         return functools.partial(self._compiled["rollout", num_arms, steps], self._actor)
@@ -181,17 +200,20 @@ class Planner:
 
     def rollout(self, joints, base_poses, targets, steps: int = 200, tolerance=EVAL_TOLERANCE) -> PlannedPath:
         """Run the policy from ``joints`` toward static ``targets`` for at most ``steps``
-        control steps (kinematically, without collision checking: check the waypoints with
-        :func:`mjx_multiarm.evaluate_arms` or run the environment for that)."""
+        control steps, stopping once every arm is within ``tolerance``; the path's collisions
+        (the start, and every motion swept as the environment checks it) are reported in
+        :class:`PlannedPath` (with ``safe=True`` the motions are collision-free)."""
         if steps < 1:
             raise ValueError(f"steps must be >= 1, got {steps}")
         n, (base_pos, base_quat, _, start, _, _, target_pos, target_quat) = self._inputs(joints, base_poses, targets, None, None)
-        waypoints, position, angle = self._rollout(n, steps)(base_pos, base_quat, start, target_pos, target_quat)
-        waypoints, position, angle = (np.asarray(x, np.float64) for x in (waypoints, position, angle))
+        outputs = self._rollout(n, steps)(base_pos, base_quat, start, target_pos, target_quat)
+        waypoints, position, angle, distance = (np.asarray(x, np.float64) for x in outputs)
         reached = (position < tolerance[0]) & (angle < tolerance[1])
         done = np.flatnonzero(reached.all(axis=1))
         last = int(done[0]) if done.size else steps
-        return PlannedPath(waypoints[: last + 1], bool(reached[last].all()), position[last], angle[last])
+        min_distance = distance[: last + 1].min(axis=0)
+        return PlannedPath(waypoints[: last + 1], bool(reached[last].all()), position[last], angle[last], min_distance,
+                           bool((min_distance < 0).any()))
 
 
 def _policy_joints(env: ReachingEnv, actor, base_pos, base_quat, prev_joints, joints, prev_targets, targets):
@@ -205,4 +227,15 @@ def _policy_joints(env: ReachingEnv, actor, base_pos, base_quat, prev_joints, jo
     obs, mask = observe(base_pos, base_quat, active, snapshot(prev_joints, prev_targets), snapshot(joints, targets),
                         env.config.neighbour_radius)
     mean, _ = actor(obs, mask)
-    return env.next_joints(joints, mean, active)
+    following = env.next_joints(joints, mean, active)
+    if env.config.safe:
+        following = shield_team(env, base_pos, base_quat, joints, following, active)
+    return following
+
+
+def shield_team(env: ReachingEnv, base_pos, base_quat, joints, following, active):
+    """:func:`~mjx_multiarm.env.shield.shielded_joints` of teams with any leading batch dims."""
+    one = functools.partial(shielded_joints, env.scene, substeps=env.substeps, joint_range=env.joint_range)
+    for _ in range(joints.ndim - 2):
+        one = jax.vmap(one)
+    return one(base_pos, base_quat, joints, following, active)[0]

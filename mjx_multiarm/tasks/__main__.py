@@ -3,6 +3,7 @@
     python -m mjx_multiarm.tasks generate --arms 1-4 --count 1000 --mode static --seed 0 --out tasks.npz
     python -m mjx_multiarm.tasks generate --preset test --out test.npz
     python -m mjx_multiarm.tasks info tasks.npz [--json]
+    python -m mjx_multiarm.tasks merge a.npz b.npz --out mix.npz      # e.g. stratified + crowded training tasks
     python -m mjx_multiarm.tasks import-json DIR --out tasks.npz [--json]
     python -m mjx_multiarm.tasks export-json tasks.npz --out DIR
 
@@ -29,7 +30,7 @@ from mjx_multiarm.tasks.generate import (
     generate_dataset,
 )
 from mjx_multiarm.tasks.original_json import export_tasks, import_tasks
-from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_index
+from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_index, concatenate, with_slots
 
 
 def _counts(values, bins) -> dict[str, int]:
@@ -62,6 +63,17 @@ def _print_summary(summary: dict) -> None:
         print(f"{team:>4} {row['count']:>7} {cells} | {speeds}")
 
 
+def merge_datasets(paths: list[pathlib.Path]) -> tuple[Tasks, dict]:
+    """The tasks of several dataset files, in order, padded to the most slots, and the
+    metadata recording each source (its path, task count and own metadata). Task ids must
+    stay unique (generated sets of different seeds have distinct ids)."""
+    loaded = [(path, *load_tasks(path)) for path in paths]
+    slots = max(tasks.max_arms for _, tasks, _ in loaded)
+    merged = concatenate([with_slots(tasks, slots, str(path)) for path, tasks, _ in loaded])
+    sources = [{"path": str(path), "count": int(tasks.num_tasks), "metadata": meta} for path, tasks, meta in loaded]
+    return merged, {"merged_from": sources}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m mjx_multiarm.tasks", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -81,6 +93,9 @@ def main(argv=None) -> None:
     info = commands.add_parser("info", help="counts per team size and difficulty/speed bin")
     info.add_argument("path", type=pathlib.Path)
     info.add_argument("--json", action="store_true", help="end with one JSON line")
+    merge = commands.add_parser("merge", help="join task datasets into one file (padded to the most slots)")
+    merge.add_argument("paths", type=pathlib.Path, nargs="+")
+    merge.add_argument("--out", type=pathlib.Path, required=True)
     imp = commands.add_parser("import-json", help="convert a folder of original per-task JSON files")
     imp.add_argument("source", type=pathlib.Path)
     imp.add_argument("--out", type=pathlib.Path, required=True)
@@ -110,6 +125,10 @@ def main(argv=None) -> None:
             _print_summary(summary)
             if args.json:
                 print(json.dumps(summary))
+        elif args.command == "merge":
+            tasks, metadata = merge_datasets(args.paths)
+            save_tasks(args.out, tasks, metadata)
+            print(f"wrote {tasks.num_tasks} tasks from {len(args.paths)} files to {args.out}")
         elif args.command == "import-json":
             tasks, report = import_tasks(args.source, args.max_arms)
             save_tasks(args.out, tasks, {"imported_from": str(args.source)})

@@ -217,22 +217,35 @@ def _kernels(scene: Scene):
     return ik, collided
 
 
-def sample_configurations(rng: np.random.Generator, scene: Scene, base_pos, base_quat, active):
-    """One collision-free composite configuration per task: (joints [n, A, 6], ok [n])."""
+def _padded(x, rows: int):
+    """``x`` with zero rows appended up to ``rows`` (a fixed shape for the jitted kernels)."""
+    x = np.asarray(x)
+    return np.concatenate([x, np.zeros((rows - len(x), *x.shape[1:]), x.dtype)]) if rows > len(x) else x
+
+
+def sample_configurations(rng: np.random.Generator, scene: Scene, base_pos, base_quat, active, pad_to: int = 0):
+    """One collision-free composite configuration per task: (joints [n, A, 6], ok [n]).
+
+    The kernels run on ``max(n, pad_to)`` rows (padding rows are inactive), so the retries
+    of a chunk, whatever their count, reuse one compilation; the random draws are the same.
+    """
     ik, collided = _kernels(scene)
     arm = scene.arm
+    n, rows = len(active), max(len(active), pad_to)
     joints = np.broadcast_to(arm.home, (*active.shape, 6)).copy()
     accepted = ~active
+    base_pos, base_quat = _padded(base_pos, rows), _padded(base_quat, rows)
     for _ in range(MAX_ROUNDS):
         pending = ~accepted
         if not pending.any():
             break
         targets = _hemisphere_targets(rng, active.shape)
         initial = arm.home + rng.normal(0.0, INITIAL_NOISE, (*active.shape, 6))
-        solved, ok = ik(jnp.asarray(targets, jnp.float32), jnp.asarray(initial, jnp.float32))
-        tentative = pending & np.asarray(ok)
-        trial = np.where(tentative[..., None], np.asarray(solved, np.float64), joints)
-        hit = np.asarray(collided(base_pos, base_quat, jnp.asarray(trial, jnp.float32), active & (accepted | tentative)))
+        solved, ok = ik(jnp.asarray(_padded(targets, rows), jnp.float32), jnp.asarray(_padded(initial, rows), jnp.float32))
+        tentative = pending & np.asarray(ok)[:n]
+        trial = np.where(tentative[..., None], np.asarray(solved, np.float64)[:n], joints)
+        hit = np.asarray(collided(base_pos, base_quat, jnp.asarray(_padded(trial, rows), jnp.float32),
+                                  _padded(active & (accepted | tentative), rows)))[:n]
         keep = tentative & ~hit
         joints[keep] = trial[keep]
         accepted |= keep
@@ -259,7 +272,7 @@ def generate_chunk(spec: GenerationSpec, chunk: int) -> Tasks:
         ok = np.ones(todo.sum(), bool)
         found = []
         for _ in range(3 if spec.mode == "dynamic" else 2):
-            joints, done = sample_configurations(rng, scene, pos, quat, active[todo])
+            joints, done = sample_configurations(rng, scene, pos, quat, active[todo], pad_to=n)
             found.append(joints)
             ok &= done
         rows = np.flatnonzero(todo)[ok]

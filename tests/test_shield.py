@@ -1,0 +1,65 @@
+"""Safe execution: shielded team steps never collide, and change nothing that is free."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_env import _facing_pair, rollout
+
+from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
+from mjx_multiarm.env.shield import HELD, PROPOSED, REVERSED, shielded_joints
+from mjx_multiarm.env.wrappers import TaskBank
+from mjx_multiarm.geometry.collision import scene_contacts, swept_contacts
+from mjx_multiarm.tasks.types import take
+
+
+@pytest.fixture(scope="module")
+def crowded(generated):
+    """Free start configurations of the generated 2-6-arm teams in 6 slots, and proposals
+    that drive every arm at full speed toward its goal (many of them collide)."""
+    tasks = take(generated, (generated.num_arms >= 2) & (generated.num_arms <= 6))
+    env = ReachingEnv(6)
+    t = TaskBank.from_tasks(tasks, 6).tasks
+    # Every team at 0, 1/4, 1/2, 3/4 of its straight joint path from start to goal, where free.
+    t = jax.tree.map(lambda x: jnp.concatenate([x] * 4), t)
+    fraction = jnp.repeat(jnp.arange(4) / 4, tasks.num_tasks)[:, None, None]
+    t = t.replace(start_joints=t.start_joints + fraction * (t.goal_joints - t.start_joints))
+    free = ~np.asarray(scene_contacts(env.scene, t.base_pos, t.base_quat, t.start_joints, t.active).collided.any(-1))
+    t = jax.tree.map(lambda x: x[free], t)
+    proposed = env.next_joints(t.start_joints, env.joint_deltas_to_actions(t.goal_joints - t.start_joints), t.active)
+    return env, t, proposed
+
+
+def test_shielded_steps_never_collide_and_free_steps_pass_unchanged(crowded):
+    env, t, proposed = crowded
+    shield = jax.jit(jax.vmap(functools.partial(shielded_joints, env.scene, substeps=env.substeps, joint_range=env.joint_range)))
+    executed, motion, contacts = shield(t.base_pos, t.base_quat, t.start_joints, proposed, t.active)
+    sweep = jax.jit(jax.vmap(lambda p, q, a, b, active: swept_contacts(env.scene, p, q, a, b, active, env.substeps)))
+    asked = np.asarray(sweep(t.base_pos, t.base_quat, t.start_joints, proposed, t.active).collided.any(-1))
+    done = sweep(t.base_pos, t.base_quat, t.start_joints, executed, t.active)
+    assert 5 <= asked.sum() < len(asked)  # the proposals collide in some teams, not all
+    assert not np.asarray(done.collided).any()  # the executed steps never do
+    np.testing.assert_array_equal(np.asarray(contacts.min_distance), np.asarray(done.min_distance))
+    executed, motion, proposed = (np.asarray(x) for x in (executed, motion, proposed))
+    start, active = np.asarray(t.start_joints), np.asarray(t.active)
+    np.testing.assert_array_equal(executed[~asked], proposed[~asked])  # free team steps are left alone
+    assert (motion[~asked][active[~asked]] == PROPOSED).all()
+    reverse = np.clip(2 * start - proposed, env.joint_range[:, 0], env.joint_range[:, 1])
+    for level, expected in ((PROPOSED, proposed), (REVERSED, reverse), (HELD, start)):
+        np.testing.assert_allclose(executed[motion == level], expected[motion == level], atol=1e-6)
+    assert (motion[asked] == PROPOSED).any() and (motion[asked] != PROPOSED).any()  # some pass, some give way
+    assert (motion[~active] == HELD).all()
+
+
+def test_arms_driven_into_each_other_never_collide_when_shielded():
+    """Two arms driven into each other (the plain environment ends that episode in a
+    collision, test_env): shielded, the drive goes on to the step limit without one."""
+    bank = TaskBank.from_tasks(_facing_pair(), 2)
+    final, states, _ = rollout(ReachingEnv(2, EnvConfig(max_steps=80, safe=True)), 80)(bank.tasks, jnp.asarray([0.02, 0.1]))
+    assert not np.asarray(states.collided).any() and np.asarray(states.metrics["min_distance"]).min() >= 0
+    assert np.asarray(states.metrics["shielded"][:, 0]).any(axis=0).all()  # both arms had to give way
+    assert bool(final.truncated[0]) and int(final.step[0]) == 80
