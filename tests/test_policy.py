@@ -119,6 +119,11 @@ def test_planner_rollout_and_bad_input(policy_path):
     many = jnp.broadcast_to(jnp.asarray(joints, jnp.float32), (4, 2, 6))
     assert batched(*(jnp.broadcast_to(jnp.asarray(x, jnp.float32), (4, *np.shape(x))) for x in (
         np.zeros((2, 3)), [[1, 0, 0, 0]] * 2)), many, many, *(jnp.zeros((4, 2, k)) for k in (3, 4, 3, 4))).shape == (4, 2, 6)
+    assert not path.collided and path.min_distance.shape == (2,) and (path.min_distance > 0).all()
+    overlapping = joints[[0, 0]]  # the grippers of arms 1 m apart, facing, interpenetrate by 7 cm
+    assert evaluate_arms(bases, overlapping).collided.all()
+    path = planner.rollout(overlapping, bases, away, steps=3)
+    assert path.collided and (path.min_distance < 0).all()
     with pytest.raises(ValueError, match=r"joints: expected shape \(n_arms, 6\), got \(2, 5\)"):
         planner.step(joints[:, :5], bases, away)
     with pytest.raises(ValueError, match=r"targets: expected shape \(2, 7\) for 2 arms, got \(3, 7\)"):

@@ -25,7 +25,7 @@ from mjx_multiarm.tasks.generate import (
     sample_bases_original,
     spec_record,
 )
-from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, bin_index, take
+from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, bin_index, take, with_slots
 
 
 def test_generated_tasks_are_valid(generated):
@@ -132,6 +132,23 @@ def test_cli_info_and_json_round_trip(tmp_path, capsys, generated):
     assert report["count"] == 20 and report["max_fk_position_error_m"] < 1e-5 and report["max_difficulty_error"] < 1e-9
     back, _ = load_tasks(tmp_path / "back.npz")
     np.testing.assert_array_equal(back.goal_joints, take(generated, np.arange(20)).goal_joints)
+
+
+def test_cli_merge_joins_datasets_padded_to_the_most_slots(tmp_path, capsys, generated):
+    small = take(generated, generated.num_arms <= 2)
+    five = with_slots(take(small, np.arange(6)), 5)
+    two = with_slots(take(small, np.arange(6, small.num_tasks)), 2)
+    save_tasks(tmp_path / "a.npz", five, {"source": "a"})
+    save_tasks(tmp_path / "b.npz", two)
+    cli.main(["merge", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "ab.npz")])
+    merged, meta = load_tasks(tmp_path / "ab.npz")
+    assert merged.max_arms == 5 and merged.num_tasks == small.num_tasks
+    np.testing.assert_array_equal(merged.task_id, small.task_id)
+    np.testing.assert_array_equal(merged.goal_joints[:, :2], small.goal_joints[:, :2])
+    assert [(m["count"], m["metadata"]) for m in meta["merged_from"]] == [(6, {"source": "a"}), (small.num_tasks - 6, {})]
+    with pytest.raises(SystemExit, match="duplicate ids"):  # the same tasks twice
+        cli.main(["merge", str(tmp_path / "a.npz"), str(tmp_path / "a.npz"), "--out", str(tmp_path / "aa.npz")])
+    assert not (tmp_path / "aa.npz").exists()
 
 
 # --- difficulty ---------------------------------------------------------------------------
