@@ -12,8 +12,8 @@ chase targets moving at the task's speed. An episode succeeds when every arm is 
 without any collision. BiRRT static: plan start -> goal, then execute the plan (its steps
 are replayed with the environment's rules before it counts); dynamic: the re-planning loop
 of :mod:`mjx_multiarm.expert.replan`. ``--safe`` runs the policy with safe execution
-(:mod:`mjx_multiarm.env.shield`: every team step checked before it is executed, colliding
-motions reversed or held), beyond the paper: no collisions, and its failures are timeouts
+(:mod:`mjx_multiarm.env.shield`: every team step checked before it is executed, arms whose
+motions would collide step away from the others or hold), beyond the paper: no collisions, and its failures are timeouts
 (deadlocks).
 
 Writes ``static.md`` / ``static.csv`` (success by team size x difficulty bin, with the
@@ -195,8 +195,9 @@ def _parser() -> argparse.ArgumentParser:
                         help="observe neighbour bases within M metres instead of the radius the policy file records "
                              "(0: the policy sees only its own arm, as the individualistic ablation)")
     parser.add_argument("--safe", action="store_true",
-                        help="safe execution: every team step is checked before it is executed and colliding motions are "
-                             "reversed or held (no collisions; failures are deadlocks, counted as timeouts)")
+                        help="safe execution: every team step is checked before it is executed; arms whose motions would "
+                             "collide step away from the others or hold (no collisions; failures are deadlocks, counted "
+                             "as timeouts)")
     parser.add_argument("--episode-steps", type=int, default=500, help="control steps per episode (default 500, the paper's)")
     parser.add_argument("--iterations", type=int, default=PlannerConfig.iterations, help="BiRRT iteration cap per plan")
     parser.add_argument("--seed", type=int, default=0)

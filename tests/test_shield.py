@@ -11,7 +11,7 @@ import pytest
 from test_env import _facing_pair, rollout
 
 from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
-from mjx_multiarm.env.shield import HELD, PROPOSED, REVERSED, shielded_joints
+from mjx_multiarm.env.shield import AWAY, HELD, PROPOSED, away_joints, shielded_joints
 from mjx_multiarm.env.wrappers import TaskBank
 from mjx_multiarm.geometry.collision import scene_contacts, swept_contacts
 from mjx_multiarm.tasks.types import take
@@ -36,7 +36,8 @@ def crowded(generated):
 
 def test_shielded_steps_never_collide_and_free_steps_pass_unchanged(crowded):
     env, t, proposed = crowded
-    shield = jax.jit(jax.vmap(functools.partial(shielded_joints, env.scene, substeps=env.substeps, joint_range=env.joint_range)))
+    limits = {"joint_range": env.joint_range, "max_step": env.max_step}
+    shield = jax.jit(jax.vmap(functools.partial(shielded_joints, env.scene, substeps=env.substeps, **limits)))
     executed, motion, contacts = shield(t.base_pos, t.base_quat, t.start_joints, proposed, t.active)
     sweep = jax.jit(jax.vmap(lambda p, q, a, b, active: swept_contacts(env.scene, p, q, a, b, active, env.substeps)))
     asked = np.asarray(sweep(t.base_pos, t.base_quat, t.start_joints, proposed, t.active).collided.any(-1))
@@ -48,11 +49,14 @@ def test_shielded_steps_never_collide_and_free_steps_pass_unchanged(crowded):
     start, active = np.asarray(t.start_joints), np.asarray(t.active)
     np.testing.assert_array_equal(executed[~asked], proposed[~asked])  # free team steps are left alone
     assert (motion[~asked][active[~asked]] == PROPOSED).all()
-    reverse = np.clip(2 * start - proposed, env.joint_range[:, 0], env.joint_range[:, 1])
-    for level, expected in ((PROPOSED, proposed), (REVERSED, reverse), (HELD, start)):
+    away = np.asarray(jax.vmap(functools.partial(away_joints, env.scene, **limits))(t.base_pos, t.base_quat, t.start_joints,
+                                                                                    t.active))
+    for level, expected in ((PROPOSED, proposed), (AWAY, away), (HELD, start)):
         np.testing.assert_allclose(executed[motion == level], expected[motion == level], atol=1e-6)
     assert (motion[asked] == PROPOSED).any() and (motion[asked] != PROPOSED).any()  # some pass, some give way
     assert (motion[~active] == HELD).all()
+    ratio = (np.abs(away - start) / env.max_step).max(-1)[active]  # a full step away, or none (no arm near)
+    assert np.all(np.isclose(ratio, 1.0, atol=1e-4) | (ratio < 1e-6)) and (ratio > 0.5).mean() > 0.5
 
 
 def test_arms_driven_into_each_other_never_collide_when_shielded():

@@ -111,8 +111,8 @@ class EnvConfig:
       end_on_collision: a collision ends the episode (the paper's rule, and evaluation's);
         False restores the colliding arms instead (module rules).
       safe: every team step goes through :func:`mjx_multiarm.env.shield.shielded_joints`
-        (collision-free execution; ``metrics["shielded"]`` marks the arms whose motion was
-        reversed or held). Off for the paper's metric.
+        (collision-free execution; ``metrics["shielded"]`` marks the arms that stepped away
+        or held instead of their proposed motion). Off for the paper's metric.
     """
 
     max_steps: int = option(500, "episode length in control steps", flag="episode_steps")
@@ -128,7 +128,7 @@ class EnvConfig:
     end_on_collision: bool = option(True, "a collision ends the episode (the paper; evaluation always ends it); 0: the "
                                           "colliding arms are put back with the collision penalty and the episode goes on")
     safe: bool = option(False, "safe execution (deployment, beyond the paper): every team step is shielded so that it never "
-                               "collides (mjx_multiarm.env.shield: colliding motions reversed or held)")
+                               "collides (mjx_multiarm.env.shield: colliding arms step away from the others or hold)")
 
     def __post_init__(self):
         if self.max_steps < 1:
@@ -311,7 +311,7 @@ class ReachingEnv:
         metrics = {}
         if self.config.safe:
             joints, motion, contacts = shielded_joints(self.scene, task.base_pos, task.base_quat, state.joints, joints,
-                                                       task.active, self.substeps, self.joint_range)
+                                                       task.active, self.substeps, self.joint_range, self.max_step)
             frames = self._pose(task, joints)
             metrics["shielded"] = motion != PROPOSED
         else:

@@ -2,15 +2,18 @@
 
 Before a team step is executed, every arm's motion is checked with the swept collision
 check against the other arms' motions (the environment's own check, same substeps). Each
-arm has three motions, tried in order: the one proposed (by the policy), its reverse (a
-step back, away from whatever the proposal ran into), and holding still. While any motion
-of the team collides, the colliding arms step down one option, except the one with the
-highest priority (lowest slot index) among those not yet given the right of way: it keeps
-its motion for one more check, so that of two arms that run into each other the lower one
-backs off and the higher one passes. An arm whose motion still collides when nothing else
-can give way steps down as well. Holding still is always free when the team's current
-configuration is free (held arms are where they were, and every moving arm is checked
-against them), so the loop ends with a collision-free step in at most 3 x arms checks.
+arm has three motions, tried in order: the one proposed (by the policy), a step away from
+the other arms (:func:`away_joints`: up the gradient of its distance to their link
+points), and holding still. While any motion of the team collides, the colliding arms step
+down one option, except the one with the highest priority (lowest slot index) among those
+not yet given the right of way: it keeps its motion for one more check, so that of two
+arms that run into each other the lower one makes room and the higher one passes. An arm
+whose motion still collides when nothing else can give way steps down as well. Holding
+still is always free when the team's current configuration is free (held arms are where
+they were, and every moving arm is checked against them), so the loop ends with a
+collision-free step in at most 3 x arms checks. Stepping away (rather than holding, or
+reversing the proposal) is what gets blocked arms unstuck: measured in
+benchmarks/RESULTS.md, "Safe execution".
 """
 
 from __future__ import annotations
@@ -19,28 +22,30 @@ import jax
 import jax.numpy as jnp
 
 from mjx_multiarm.geometry.collision import Contacts, swept_contacts
+from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.scene import Scene
 
 #: The motions an arm may be given, in the order they are tried.
-PROPOSED, REVERSED, HELD = 0, 1, 2
+PROPOSED, AWAY, HELD = 0, 1, 2
 
 
-def shielded_joints(scene: Scene, base_pos, base_quat, joints, proposed, active, substeps: int, joint_range):
+def shielded_joints(scene: Scene, base_pos, base_quat, joints, proposed, active, substeps: int, joint_range, max_step):
     """The executed next joints of one team and what was done to each arm.
 
     Args:
       joints: [A, 6] the current (collision-free) joints; proposed: [A, 6] the next joints
         asked for (within the per-step and joint limits); active: [A] bool.
-      substeps, joint_range: as the environment's swept check and joint limits.
+      substeps, joint_range, max_step: the environment's swept-check substeps, joint limits
+        [6, 2] and largest joint motion per step [6].
 
     Returns:
-      (next joints [A, 6], motion [A] int: :data:`PROPOSED`, :data:`REVERSED` or
-      :data:`HELD`, contacts of the executed step).
+      (next joints [A, 6], motion [A] int: :data:`PROPOSED`, :data:`AWAY` or :data:`HELD`,
+      contacts of the executed step).
     """
     num_arms = joints.shape[-2]
     slot = jnp.arange(num_arms)
-    reverse = jnp.clip(2.0 * joints - proposed, joint_range[:, 0], joint_range[:, 1])
-    options = jnp.stack([proposed, reverse, joints])  # [3, A, 6]
+    away = away_joints(scene, base_pos, base_quat, joints, active, max_step, joint_range)
+    options = jnp.stack([proposed, away, joints])  # [3, A, 6]
     still = ~jnp.any(proposed != joints, axis=-1) | ~active
     level = jnp.where(still, HELD, PROPOSED)
 
@@ -67,3 +72,30 @@ def shielded_joints(scene: Scene, base_pos, base_quat, joints, proposed, active,
 
     level, _, contacts = jax.lax.while_loop(cond, body, (level, jnp.zeros(num_arms, bool), check(level)))
     return motion(level), level, contacts
+
+
+#: Softness (m) of the smallest link-point distance whose gradient points away from the others.
+AWAY_SOFTNESS = 0.05
+#: Beyond this distance (m) of its link points to every other arm's an arm feels no push.
+AWAY_RANGE = 0.5
+
+
+def away_joints(scene: Scene, base_pos, base_quat, joints, active, max_step, joint_range):
+    """[A, 6] every arm's joints one full step up the gradient of its smooth smallest
+    distance to the other arms' link points (the 10 points the policy observes); arms with
+    no other arm within :data:`AWAY_RANGE` stay where they are."""
+    num_arms = joints.shape[-2]
+    other = active[:, None] & active[None, :] & ~jnp.eye(num_arms, dtype=bool)
+
+    def clearance(q):
+        points = forward_kinematics(scene.arm, base_pos, base_quat, q).points  # [A, 10, 3]
+        gap = points[:, None, :, None, :] - points[None, :, None, :, :]  # [A, A, 10, 10, 3]
+        distance = jnp.sqrt((gap * gap).sum(-1) + 1e-9)
+        distance = jnp.where(other[:, :, None, None], distance, AWAY_RANGE)
+        soft = -AWAY_SOFTNESS * jax.nn.logsumexp(-distance.reshape(num_arms, -1) / AWAY_SOFTNESS, axis=-1)
+        return jnp.where(active, jnp.minimum(soft, AWAY_RANGE), 0.0).sum()
+
+    gradient = jax.grad(clearance)(joints)
+    scale = jnp.max(jnp.abs(gradient) / max_step, axis=-1, keepdims=True)
+    step = jnp.where(scale > 1e-9, gradient / jnp.maximum(scale, 1e-9), 0.0)
+    return jnp.clip(joints + step, joint_range[:, 0], joint_range[:, 1])

@@ -211,17 +211,23 @@ def make_episodes(env: ReachingEnv, policy, steps: int):
 
     ``policy(states, params) -> actions [B, max_arms, 6]`` sees the batched states; the
     returned function maps (tasks [B], params) to the final states (finished episodes stay
-    frozen at their end, see :class:`~mjx_multiarm.env.reaching.ReachingEnv`).
+    frozen at their end, see :class:`~mjx_multiarm.env.reaching.ReachingEnv`). Stepping
+    stops once every episode of the batch has ended (the states would not change).
     """
 
     @jax.jit
     def episodes(tasks: Tasks, params):
         start = jax.vmap(lambda task: env.reset(None, task))(tasks)
 
-        def step(states, _):
-            return jax.vmap(env.step)(states, policy(states, params)), None
+        def running(carry):
+            t, states = carry
+            return (t < steps) & ~states.done.all()
 
-        return jax.lax.scan(step, start, None, steps)[0]
+        def step(carry):
+            t, states = carry
+            return t + 1, jax.vmap(env.step)(states, policy(states, params))
+
+        return jax.lax.while_loop(running, step, (jnp.zeros((), jnp.int32), start))[1]
 
     return episodes
 

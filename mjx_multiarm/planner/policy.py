@@ -10,8 +10,8 @@
 Each call evaluates every arm's policy on its own decentralized observation (its
 neighbours within the policy's radius) and returns the next joint waypoint of every arm
 (one control step of 50 ms, within the velocity and joint limits). With ``safe=True`` each
-team step is first checked with the swept collision check, and colliding motions are
-reversed or held (:mod:`mjx_multiarm.env.shield`): the waypoints never collide in the
+team step is first checked with the swept collision check, and arms whose motions would
+collide step away from the others or hold (:mod:`mjx_multiarm.env.shield`): the waypoints never collide in the
 model (given a collision-free start). Arms may stand anywhere
 and there may be any number of them: the observation is built for exactly the arms given.
 :meth:`Planner.batched` is the jittable JAX path for batches of teams.
@@ -235,7 +235,8 @@ def _policy_joints(env: ReachingEnv, actor, base_pos, base_quat, prev_joints, jo
 
 def shield_team(env: ReachingEnv, base_pos, base_quat, joints, following, active):
     """:func:`~mjx_multiarm.env.shield.shielded_joints` of teams with any leading batch dims."""
-    one = functools.partial(shielded_joints, env.scene, substeps=env.substeps, joint_range=env.joint_range)
+    one = functools.partial(shielded_joints, env.scene, substeps=env.substeps, joint_range=env.joint_range,
+                            max_step=env.max_step)
     for _ in range(joints.ndim - 2):
         one = jax.vmap(one)
     return one(base_pos, base_quat, joints, following, active)[0]
