@@ -8,7 +8,9 @@ Two figures per neighbour count n (1-10 arms in view, the observing arm included
 - ``forward``: one arm's policy forward pass on its sequence of n elements (jitted, numpy
   observation in, action out): the paper's per-forward-pass figure;
 - ``team_step``: :meth:`mjx_multiarm.Planner.step` for a team of n arms, numpy in and out
-  (kinematics, every arm's observation, all n forward passes in one batch, limits).
+  (kinematics, every arm's observation, all n forward passes in one batch, limits);
+- ``safe_step``: the same with safe execution (``Planner(safe=True)``: the team step checked
+  by the swept collision check, and given way where it would collide).
 
 The process pins itself to ``--threads`` cores (``sched_setaffinity``) and XLA to one
 intra-op thread when ``--threads 1``, before JAX starts. Latencies are per call after
@@ -52,18 +54,20 @@ def measure(checkpoint: pathlib.Path | None, neighbours: list[int], calls: int) 
     from eval.benchmark import load_planner
     from mjx_multiarm.env.observation import ELEMENT_SIZE
 
-    planner = load_planner(checkpoint)
+    planner, safe = load_planner(checkpoint), load_planner(checkpoint, safe=True)
     actor = planner.policy.actor
     forward = jax.jit(lambda obs, mask: actor(obs, mask)[0])
     rng = np.random.default_rng(0)
-    result = {"neighbours": neighbours, "p50_ms": [], "p99_ms": [], "team_step_p50_ms": [], "team_step_p99_ms": []}
+    result = {"neighbours": neighbours, **{f"{name}{p}_ms": [] for name in ("", "team_step_", "safe_step_") for p in ("p50", "p99")}}
     for n in neighbours:
         obs = rng.normal(size=(1, n, ELEMENT_SIZE)).astype(np.float32)
         mask = np.ones((1, n), bool)
         joints = np.tile([0.0, -1.2, 1.0, -1.4, -1.57, 0.0], (n, 1))
         bases = np.stack([np.arange(n) * 0.8, np.zeros(n), np.zeros(n)], axis=-1)
         targets = np.concatenate([bases[:, :2] + [0.4, 0.1], np.full((n, 1), 0.4), np.tile([0, 0, 0, 1.0], (n, 1))], axis=-1)
-        for name, call in (("", lambda: np.asarray(forward(obs, mask))), ("team_step_", lambda: planner.step(joints, bases, targets))):
+        calls_of = {"": lambda: np.asarray(forward(obs, mask)), "team_step_": lambda: planner.step(joints, bases, targets),
+                    "safe_step_": lambda: safe.step(joints, bases, targets)}
+        for name, call in calls_of.items():
             for _ in range(20):
                 call()
             times = []
@@ -91,10 +95,11 @@ def main(argv=None) -> None:
     except (ValueError, FileNotFoundError) as error:
         sys.exit(f"error: {error}")
     result["threads"] = args.threads
-    print(f"{'neighbours':>10} {'forward p50':>12} {'p99':>8} {'team step p50':>14} {'p99':>8}   (ms, {args.threads} thread(s))")
+    print(f"{'neighbours':>10} {'forward p50':>12} {'p99':>8} {'team step p50':>14} {'p99':>8} {'safe step p50':>14} {'p99':>8}"
+          f"   (ms, {args.threads} thread(s))")
     for i, n in enumerate(result["neighbours"]):
         print(f"{n:>10} {result['p50_ms'][i]:>12.3f} {result['p99_ms'][i]:>8.3f} {result['team_step_p50_ms'][i]:>14.3f} "
-              f"{result['team_step_p99_ms'][i]:>8.3f}")
+              f"{result['team_step_p99_ms'][i]:>8.3f} {result['safe_step_p50_ms'][i]:>14.3f} {result['safe_step_p99_ms'][i]:>8.3f}")
     print("paper: 1.09 ms per forward pass (920 Hz), one CPU thread")
     if args.json:
         print(json.dumps(result))

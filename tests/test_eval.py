@@ -52,6 +52,10 @@ def test_benchmark_policy_and_birrt_tables(files, tmp_path, capsys):
         assert (tmp_path / "p" / name).is_file()
     assert "| 1 |" in (tmp_path / "p" / "static.md").read_text() and "0.988" in (tmp_path / "p" / "static.md").read_text()
 
+    benchmark.main(["--checkpoint", str(files / "policy.npz"), "--out", str(tmp_path / "s"), "--safe", *common])
+    safe = last_json(capsys)
+    assert safe["safe"] and not policy["safe"] and safe["collision_rate"] == 0.0 == safe["dynamic"]["collision_rate"]
+
     benchmark.main(["--planner", "birrt", "--mode", "static", "--out", str(tmp_path / "b"), *common])
     birrt = last_json(capsys)
     assert birrt["success"]["1"]["average"] == 1.0 and birrt["success"]["2"]["average"] == 1.0
@@ -84,11 +88,12 @@ def test_benchmark_neighbour_radius_overrides_the_policy_file(files, monkeypatch
     common = ["--checkpoint", str(files / "policy.npz"), "--tasks", str(files / "tasks.npz"), "--mode", "static"]
     with pytest.raises(SystemExit, match="neighbour_radius must be >= 0"):  # the flag reaches the planner
         benchmark.main([*common, "--neighbour-radius", "-1"])
-    with pytest.raises(SystemExit, match="--planner policy only"):
-        benchmark.main([*common, "--planner", "birrt", "--neighbour-radius", "0"])
+    for flag in (["--neighbour-radius", "0"], ["--safe"]):
+        with pytest.raises(SystemExit, match="--planner policy only"):
+            benchmark.main([*common, "--planner", "birrt", *flag])
 
     requested = []  # a radius of 0 is a value, not "unset": it must reach the planner (stopped before any rollout)
-    def record(checkpoint, radius):
+    def record(checkpoint, radius, safe):
         requested.append(radius)
         raise ValueError("planner recorded")
     monkeypatch.setattr(benchmark, "load_planner", record)
@@ -103,7 +108,8 @@ def test_latency_cli_reports_percentiles(files):
                           "--max-neighbours", "2", "--json"], capture_output=True, text=True, check=True).stdout
     result = json.loads(out.strip().splitlines()[-1])
     assert result["neighbours"] == [1, 2] and result["threads"] == 1
-    assert all(0 < p50 <= p99 for p50, p99 in zip(result["p50_ms"], result["p99_ms"]))
+    for name in ("", "team_step_", "safe_step_"):
+        assert all(0 < p50 <= p99 for p50, p99 in zip(result[f"{name}p50_ms"], result[f"{name}p99_ms"]))
 
 
 @pytest.mark.slow
