@@ -189,7 +189,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--tasks", type=pathlib.Path, help="task dataset .npz (default: a generated test set)")
     parser.add_argument("--planner", choices=["policy", "birrt"], default="policy")
     parser.add_argument("--per-team", type=int, default=20, help="generated test set: tasks per team size (default 20)")
-    parser.add_argument("--arms", default="1-10", help="generated test set: team sizes (default 1-10)")
+    parser.add_argument("--arms", help="team sizes: of the generated test set (default 1-10), or the tasks of --tasks to run "
+                                       "(default all)")
     parser.add_argument("--mode", choices=["static", "dynamic", "both"], default="both", help="which tables (default both)")
     parser.add_argument("--neighbour-radius", type=float, metavar="M",
                         help="observe neighbour bases within M metres instead of the radius the policy file records "
@@ -232,11 +233,15 @@ def render_episodes(planner: Planner, tasks: Tasks, count: int, episode_steps: i
 def main(argv=None) -> None:
     args = _parser().parse_args(argv)
     try:
-        arms = parse_arms(args.arms)
+        arms = parse_arms(args.arms or "1-10")
         if args.tasks:
             tasks = load_tasks(args.tasks)[0]
+            if args.arms:
+                tasks = take(tasks, np.isin(tasks.num_arms, arms))
+                if not tasks.num_tasks:
+                    raise ValueError(f"{args.tasks}: no task of {args.arms} arms")
         else:
-            print(f"generating {args.per_team} test tasks per team size {args.arms}...", file=sys.stderr)
+            print(f"generating {args.per_team} test tasks per team size {args.arms or '1-10'}...", file=sys.stderr)
             tasks = generated_test_tasks(args.per_team, arms, args.seed + 20_000)
         if (args.neighbour_radius is not None or args.safe) and args.planner != "policy":
             raise ValueError("--neighbour-radius and --safe apply to --planner policy only")

@@ -52,9 +52,12 @@ def test_benchmark_policy_and_birrt_tables(files, tmp_path, capsys):
         assert (tmp_path / "p" / name).is_file()
     assert "| 1 |" in (tmp_path / "p" / "static.md").read_text() and "0.988" in (tmp_path / "p" / "static.md").read_text()
 
-    benchmark.main(["--checkpoint", str(files / "policy.npz"), "--out", str(tmp_path / "s"), "--safe", *common])
+    benchmark.main(["--checkpoint", str(files / "policy.npz"), "--out", str(tmp_path / "s"), "--safe", "--arms", "2", *common])
     safe = last_json(capsys)
     assert safe["safe"] and not policy["safe"] and safe["collision_rate"] == 0.0 == safe["dynamic"]["collision_rate"]
+    assert set(safe["success"]) == {"2"} and safe["tasks"] == 2  # --arms picks the 2-arm tasks of the file
+    with pytest.raises(SystemExit, match="no task of 3 arms"):
+        benchmark.main(["--checkpoint", str(files / "policy.npz"), "--arms", "3", *common])
 
     benchmark.main(["--planner", "birrt", "--mode", "static", "--out", str(tmp_path / "b"), *common])
     birrt = last_json(capsys)

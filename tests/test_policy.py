@@ -124,6 +124,13 @@ def test_planner_rollout_and_bad_input(policy_path):
     assert evaluate_arms(bases, overlapping).collided.all()
     path = planner.rollout(overlapping, bases, away, steps=3)
     assert path.collided and (path.min_distance < 0).all()
+    safe = Planner.load(policy_path, safe=True)  # shielded: the random policy's free-start path stays free
+    path = safe.rollout(joints, bases, away, steps=20)
+    assert not path.collided and path.waypoints.shape == (21, 2, 6)
+    pos = jnp.broadcast_to(jnp.asarray([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), (3, 2, 3))  # the bases above, wxyz
+    quat = jnp.broadcast_to(jnp.asarray([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]), (3, 2, 4))
+    targets = (jnp.zeros((3, 2, 3)), jnp.broadcast_to(quat, (3, 2, 4))) * 2
+    assert safe.batched(2)(pos, quat, many[:3], many[:3], *targets).shape == (3, 2, 6)
     with pytest.raises(ValueError, match=r"joints: expected shape \(n_arms, 6\), got \(2, 5\)"):
         planner.step(joints[:, :5], bases, away)
     with pytest.raises(ValueError, match=r"targets: expected shape \(2, 7\) for 2 arms, got \(3, 7\)"):
