@@ -33,6 +33,9 @@ Rules (documented here once):
   does not end the episode: every arm that collided is put back where it was before the
   step (its last collision-free pose) and receives the ``collision`` reward; the others
   keep their motion. Success still needs a step without any collision.
+- With ``EnvConfig.safe`` (deployment, beyond the paper) the motion of a step is first
+  shielded (:mod:`mjx_multiarm.env.shield`): arms whose motions would collide step away
+  from the others or hold, so that a step never collides; its failures are timeouts.
 - Tolerances (eps_p m, eps_r rad) live in the state, so a curriculum changes them without
   recompiling. Reaching counts against the target of that step (moving targets move first).
 """
