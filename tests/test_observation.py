@@ -96,7 +96,12 @@ def test_nearness_features_are_the_link_point_distances_to_each_observed_arm(sce
     arm's nearest link point (brute force in the world frame), the closing speed of the
     smallest one since t-1, and a vector as long as that smallest distance; the observer's
     own element reads as far; appended after the goal features."""
-    from mjx_multiarm.env.observation import CLOSING_SCALE, NEARNESS_CAP, InputFeatures, nearness_features
+    from mjx_multiarm.env.observation import (
+        CLOSING_SCALE,
+        NEARNESS_CAP,
+        InputFeatures,
+        nearness_features,
+    )
 
     bases, joints, previous, targets = scene
     pos, quat, now = _snapshot(bases, joints, targets)
@@ -106,7 +111,7 @@ def test_nearness_features_are_the_link_point_distances_to_each_observed_arm(sce
     features = np.asarray(nearness_features(obs))
     assert features.shape == (5, 5, 14) and np.asarray(mask).all()
     own_now, own_before = np.asarray(now.points, np.float64), np.asarray(before.points, np.float64)
-    dist = lambda a, b: np.linalg.norm(a[:, None] - b[None], axis=-1)  # noqa: E731
+    dist = lambda a, b: np.linalg.norm(a[:, None] - b[None], axis=-1)
     for i in range(5):
         np.testing.assert_allclose(features[i, -1], np.r_[np.full(10, NEARNESS_CAP), np.zeros(4)])
         seen = np.argsort(-np.linalg.norm(bases[:, :2] - bases[i, :2], axis=-1), kind="stable")[:-1]  # farthest first

@@ -25,7 +25,13 @@ from mjx_multiarm.tasks.generate import (
     sample_bases_original,
     spec_record,
 )
-from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, bin_index, take, with_slots
+from mjx_multiarm.tasks.types import (
+    DIFFICULTY_BINS,
+    SPEED_BINS,
+    bin_index,
+    take,
+    with_slots,
+)
 
 
 def test_generated_tasks_are_valid(generated):
