@@ -233,7 +233,8 @@ def render_episodes(planner: Planner, tasks: Tasks, count: int, episode_steps: i
 def main(argv=None) -> None:
     args = _parser().parse_args(argv)
     try:
-        arms = parse_arms(args.arms or "1-10")
+        team_sizes = args.arms or "1-10"
+        arms = parse_arms(team_sizes)
         if args.tasks:
             tasks = load_tasks(args.tasks)[0]
             if args.arms:
@@ -241,7 +242,7 @@ def main(argv=None) -> None:
                 if not tasks.num_tasks:
                     raise ValueError(f"{args.tasks}: no task of {args.arms} arms")
         else:
-            print(f"generating {args.per_team} test tasks per team size {args.arms or '1-10'}...", file=sys.stderr)
+            print(f"generating {args.per_team} test tasks per team size {team_sizes}...", file=sys.stderr)
             tasks = generated_test_tasks(args.per_team, arms, args.seed + 20_000)
         if (args.neighbour_radius is not None or args.safe) and args.planner != "policy":
             raise ValueError("--neighbour-radius and --safe apply to --planner policy only")

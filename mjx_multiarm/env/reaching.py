@@ -227,6 +227,12 @@ class ReachingEnv:
         delta = jnp.where(active[..., None], delta, 0.0)
         return jnp.clip(joints + delta, self.joint_range[:, 0], self.joint_range[:, 1])
 
+    def shield(self, base_pos, base_quat, joints, proposed, active):
+        """:func:`~mjx_multiarm.env.shield.shielded_joints` of one team with this environment's
+        swept-check substeps, joint limits and step limits: (next joints, motion, contacts)."""
+        return shielded_joints(self.scene, base_pos, base_quat, joints, proposed, active, self.substeps, self.joint_range,
+                               self.max_step)
+
     def _check_task(self, task: Tasks) -> None:
         if task.active.shape != (self.max_arms,):
             raise ValueError(
@@ -313,8 +319,7 @@ class ReachingEnv:
         joints = self.next_joints(state.joints, actions, task.active)
         metrics = {}
         if self.config.safe:
-            joints, motion, contacts = shielded_joints(self.scene, task.base_pos, task.base_quat, state.joints, joints,
-                                                       task.active, self.substeps, self.joint_range, self.max_step)
+            joints, motion, contacts = self.shield(task.base_pos, task.base_quat, state.joints, joints, task.active)
             frames = self._pose(task, joints)
             metrics["shielded"] = motion != PROPOSED
         else:

@@ -35,7 +35,6 @@ from flax import nnx, struct
 
 from mjx_multiarm.env.observation import ArmSnapshot, observe
 from mjx_multiarm.env.reaching import EVAL_TOLERANCE, EnvConfig, ReachingEnv
-from mjx_multiarm.env.shield import shielded_joints
 from mjx_multiarm.geometry.collision import scene_contacts, swept_contacts
 from mjx_multiarm.geometry.evaluate import base_pose_arrays, check_finite
 from mjx_multiarm.geometry.kinematics import forward_kinematics
@@ -229,14 +228,8 @@ def _policy_joints(env: ReachingEnv, actor, base_pos, base_quat, prev_joints, jo
     mean, _ = actor(obs, mask)
     following = env.next_joints(joints, mean, active)
     if env.config.safe:
-        following = shield_team(env, base_pos, base_quat, joints, following, active)
+        shield = env.shield
+        for _ in range(joints.ndim - 2):  # leading batch dims
+            shield = jax.vmap(shield)
+        following = shield(base_pos, base_quat, joints, following, active)[0]
     return following
-
-
-def shield_team(env: ReachingEnv, base_pos, base_quat, joints, following, active):
-    """:func:`~mjx_multiarm.env.shield.shielded_joints` of teams with any leading batch dims."""
-    one = functools.partial(shielded_joints, env.scene, substeps=env.substeps, joint_range=env.joint_range,
-                            max_step=env.max_step)
-    for _ in range(joints.ndim - 2):
-        one = jax.vmap(one)
-    return one(base_pos, base_quat, joints, following, active)[0]
