@@ -14,7 +14,9 @@ are replayed with the environment's rules before it counts); dynamic: the re-pla
 of :mod:`mjx_multiarm.expert.replan`. ``--safe`` runs the policy with safe execution
 (:mod:`mjx_multiarm.env.shield`: every team step checked before it is executed, arms whose
 motions would collide step away from the others or hold), beyond the paper: no collisions, and its failures are timeouts
-(deadlocks).
+(deadlocks). ``--handover`` hands every task the policy leaves unfinished to BiRRT from where
+its episode ended (:mod:`mjx_multiarm.planner.handover`: a hybrid planner; its steps are the
+policy's plus the plan's, and ``planned`` / ``mean_plan_s`` report the handed-over plans).
 
 Writes ``static.md`` / ``static.csv`` (success by team size x difficulty bin, with the
 paper's numbers), ``dynamic.md`` / ``dynamic.csv`` (by target speed), and
@@ -39,11 +41,12 @@ import numpy as np
 
 from mjx_multiarm.cli import Progress, parse_arms
 from mjx_multiarm.env.reaching import EVAL_TOLERANCE, EnvConfig, ReachingEnv
-from mjx_multiarm.env.wrappers import Outcomes, TaskBank, run_episodes
+from mjx_multiarm.env.wrappers import Outcomes, TaskBank, final_states, make_episodes
 from mjx_multiarm.expert.planner import SOLVED, PlannerConfig
 from mjx_multiarm.expert.replan import replan_episode
 from mjx_multiarm.expert.solve import solve_task
 from mjx_multiarm.files import atomic_write
+from mjx_multiarm.planner.handover import birrt_handover
 from mjx_multiarm.planner.policy import SHIPPED_POLICY, Planner
 from mjx_multiarm.render import (
     RenderingUnavailable,
@@ -86,17 +89,27 @@ def load_planner(checkpoint: pathlib.Path | None, neighbour_radius: float | None
     return Planner.load(path, neighbour_radius, safe)
 
 
-def policy_outcomes(planner: Planner, tasks: Tasks, dynamic: bool, episode_steps: int, batch: int = 256) -> Outcomes:
-    """Deterministic episodes of every task (in ``tasks`` order), bucketed by team size."""
+def policy_outcomes(planner: Planner, tasks: Tasks, dynamic: bool, episode_steps: int, batch: int = 256,
+                    handover: PlannerConfig | None = None, seed: int = 0) -> tuple[Outcomes, np.ndarray]:
+    """Deterministic episodes of every task (in ``tasks`` order), bucketed by team size:
+    (outcomes, seconds of BiRRT planning per task, NaN where none). With ``handover`` the tasks that time
+    out are handed to BiRRT from where they ended (:mod:`mjx_multiarm.planner.handover`)."""
     team = tasks.num_arms
-    parts, order = [], []
+    parts, seconds, order = [], [], []
     for size in sorted(set(team.tolist())):
         rows = np.flatnonzero(team == size)
         env = planner.environment(size, max_steps=episode_steps, dynamic_targets=dynamic, tolerance=EVAL_TOLERANCE)
-        bank = TaskBank.from_tasks(take(tasks, rows), size)
-        parts.append(run_episodes(env, planner.policy_fn(), planner.params, bank, batch=batch))
+        subset = take(tasks, rows)
+        final = final_states(make_episodes(env, planner.policy_fn(), episode_steps), planner.params,
+                             TaskBank.from_tasks(subset, size), batch)
+        outcomes, plan_s = Outcomes.of(final), np.full(len(rows), np.nan)
+        if handover is not None:
+            outcomes, plan_s = birrt_handover(subset, outcomes, final.joints, handover, seed)
+        parts.append(outcomes)
+        seconds.append(plan_s)
         order.append(rows)
-    return Outcomes.concatenate(parts).select(np.argsort(np.concatenate(order)))
+    back = np.argsort(np.concatenate(order))
+    return Outcomes.concatenate(parts).select(back), np.concatenate(seconds)[back]
 
 
 def birrt_outcomes(tasks: Tasks, dynamic: bool, episode_steps: int, config: PlannerConfig, seed: int = 0,
@@ -199,6 +212,9 @@ def _parser() -> argparse.ArgumentParser:
                         help="safe execution: every team step is checked before it is executed; arms whose motions would "
                              "collide step away from the others or hold (no collisions; failures are deadlocks, counted "
                              "as timeouts)")
+    parser.add_argument("--handover", action="store_true",
+                        help="hand every task the policy does not finish (timeout) to BiRRT from where its episode ended, "
+                             "static targets only (a hybrid planner; use with --safe, whose failures are deadlocks)")
     parser.add_argument("--episode-steps", type=int, default=500, help="control steps per episode (default 500, the paper's)")
     parser.add_argument("--iterations", type=int, default=PlannerConfig.iterations, help="BiRRT iteration cap per plan")
     parser.add_argument("--seed", type=int, default=0)
@@ -244,8 +260,10 @@ def main(argv=None) -> None:
         else:
             print(f"generating {args.per_team} test tasks per team size {team_sizes}...", file=sys.stderr)
             tasks = generated_test_tasks(args.per_team, arms, args.seed + 20_000)
-        if (args.neighbour_radius is not None or args.safe) and args.planner != "policy":
-            raise ValueError("--neighbour-radius and --safe apply to --planner policy only")
+        if (args.neighbour_radius is not None or args.safe or args.handover) and args.planner != "policy":
+            raise ValueError("--neighbour-radius, --safe and --handover apply to --planner policy only")
+        if args.handover and args.mode != "static":
+            raise ValueError("--handover plans to fixed goals: it needs --mode static")
         planner = load_planner(args.checkpoint, args.neighbour_radius, args.safe) if args.planner == "policy" else None
     except (ValueError, FileNotFoundError, argparse.ArgumentTypeError) as error:
         sys.exit(f"error: {error}")
@@ -265,12 +283,17 @@ def main(argv=None) -> None:
     if planner is not None:
         report["neighbour_radius"] = planner.env_config.neighbour_radius
         report["safe"] = planner.env_config.safe
+        report["handover"] = args.handover
     for mode in modes:
         subset = tasks if mode == "static" else take(tasks, tasks.has_dynamic_mode)
         clock = time.perf_counter()
         if planner is not None:
             print(f"{mode}: {subset.num_tasks} tasks, policy rollouts...", file=sys.stderr)
-            outcomes, plan_s = policy_outcomes(planner, subset, mode == "dynamic", args.episode_steps), None
+            config = PlannerConfig(iterations=args.iterations) if args.handover else None
+            outcomes, plan_s = policy_outcomes(planner, subset, mode == "dynamic", args.episode_steps, handover=config,
+                                               seed=args.seed)
+            if not args.handover:
+                plan_s = None
         else:
             progress = Progress(subset.num_tasks, f"{mode} BiRRT")
             outcomes, plan_s = birrt_outcomes(subset, mode == "dynamic", args.episode_steps,
@@ -281,7 +304,9 @@ def main(argv=None) -> None:
         result = summary(outcomes, bins, names)
         result["seconds"] = time.perf_counter() - clock
         if plan_s is not None:
-            result["mean_plan_s"] = float(plan_s.mean())
+            planned = ~np.isnan(plan_s)
+            result["planned"] = int(planned.sum())
+            result["mean_plan_s"] = float(plan_s[planned].mean()) if planned.any() else None
         title = f"{mode.capitalize()} targets, {args.planner}, success by team size and {'difficulty' if mode == 'static' else 'target speed'}"
         text = markdown(title, result, names, PAPER_STATIC if mode == "static" else None)
         print(text)

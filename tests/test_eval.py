@@ -56,6 +56,11 @@ def test_benchmark_policy_and_birrt_tables(files, tmp_path, capsys):
     safe = last_json(capsys)
     assert safe["safe"] and not policy["safe"] and safe["collision_rate"] == 0.0 == safe["dynamic"]["collision_rate"]
     assert set(safe["success"]) == {"2"} and safe["tasks"] == 2  # --arms picks the 2-arm tasks of the file
+    benchmark.main(["--checkpoint", str(files / "policy.npz"), "--out", str(tmp_path / "h"), "--safe", "--handover",
+                    "--mode", "static", *common])
+    hybrid = last_json(capsys)  # random weights stall; BiRRT takes every task over from where it stopped
+    assert hybrid["handover"] and hybrid["success"]["1"]["average"] == 1.0 == hybrid["success"]["2"]["average"]
+    assert hybrid["planned"] == 4 and hybrid["mean_plan_s"] > 0 and hybrid["steps_to_success"] > 10
     with pytest.raises(SystemExit, match="no task of 3 arms"):
         benchmark.main(["--checkpoint", str(files / "policy.npz"), "--arms", "3", *common])
 
@@ -91,9 +96,11 @@ def test_benchmark_neighbour_radius_overrides_the_policy_file(files, monkeypatch
     common = ["--checkpoint", str(files / "policy.npz"), "--tasks", str(files / "tasks.npz"), "--mode", "static"]
     with pytest.raises(SystemExit, match="neighbour_radius must be >= 0"):  # the flag reaches the planner
         benchmark.main([*common, "--neighbour-radius", "-1"])
-    for flag in (["--neighbour-radius", "0"], ["--safe"]):
+    for flag in (["--neighbour-radius", "0"], ["--safe"], ["--handover"]):
         with pytest.raises(SystemExit, match="--planner policy only"):
             benchmark.main([*common, "--planner", "birrt", *flag])
+    with pytest.raises(SystemExit, match="needs --mode static"):
+        benchmark.main([*common[:-2], "--handover"])
 
     requested = []  # a radius of 0 is a value, not "unset": it must reach the planner (stopped before any rollout)
     def record(checkpoint, radius, safe):

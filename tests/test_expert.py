@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv, step_limits
-from mjx_multiarm.env.wrappers import TaskBank, replay_actions
+from mjx_multiarm.env.wrappers import Outcomes, TaskBank, replay_actions
 from mjx_multiarm.expert import __main__ as cli
 from mjx_multiarm.expert import precompute as precompute_module
 from mjx_multiarm.expert.decimate import corner_points, path_to_deltas
@@ -30,6 +30,7 @@ from mjx_multiarm.expert.store import (
 )
 from mjx_multiarm.geometry.evaluate import evaluate_arms
 from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.planner.handover import birrt_handover
 from mjx_multiarm.tasks.dataset import save_tasks
 from mjx_multiarm.tasks.types import take, with_slots
 
@@ -90,6 +91,25 @@ def test_failures_are_reported_with_their_reason(small_tasks, solved):
     assert cap >= 1
     capped = solve_task(small_tasks, hardest, PlannerConfig(iterations=cap, time_limit=20))
     assert STATUSES[capped.status] == "iteration_limit" and capped.iterations == cap and len(capped.deltas) == 0
+
+
+def test_handover_plans_the_timed_out_tasks_from_where_they_ended(small_tasks, solved):
+    n, team = small_tasks.num_tasks, small_tasks.num_arms
+    timeout = np.array([False, False, True, True, True, True])
+    won = np.arange(n) == 0
+    ended = Outcomes(team, won, np.arange(n) == 1, timeout, np.full(n, 10), np.where(won, team, 0))
+    final = small_tasks.start_joints.copy()  # tasks 3-5 stuck at their start: the plan is the expert's
+    candidates = random_joints(np.random.default_rng(0), (64, 1), spread=2.0)
+    final[2, 0] = candidates[np.argmax(evaluate_arms(np.zeros((64, 1, 3)), candidates).collided[:, 0])]  # task 2: in collision
+    handed, plan_s = birrt_handover(small_tasks, ended, final, PlannerConfig(time_limit=20))
+    assert np.isnan(plan_s[:2]).all() and (plan_s[2:] > 0).all()  # only the timeouts are planned
+    np.testing.assert_array_equal(handed.success, [True, False, False, True, True, True])
+    np.testing.assert_array_equal(handed.timeout, [False, False, True, False, False, False])
+    np.testing.assert_array_equal(handed.collision, ended.collision)
+    assert [int(handed.steps[i]) for i in range(3, 6)] == [10 + len(solved[i].deltas) for i in range(3, 6)]
+    np.testing.assert_array_equal(handed.reached, np.where(handed.success, team, 0))
+    with pytest.raises(ValueError, match="must match"):
+        birrt_handover(small_tasks, ended, final[:2])
 
 
 @settings(max_examples=40)

@@ -244,6 +244,13 @@ class Outcomes:
     reached: np.ndarray  # arms within tolerance when the episode ended
 
     @classmethod
+    def of(cls, final: State) -> Outcomes:
+        """The outcomes of finished episodes' final states (numpy, [N] leading)."""
+        collision = final.collided.any(axis=-1)
+        return cls(final.task.active.sum(axis=-1), final.success, collision & ~final.success, ~final.success & ~collision,
+                   final.step, final.reached.sum(axis=-1))
+
+    @classmethod
     def concatenate(cls, parts: list[Outcomes]) -> Outcomes:
         return cls(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(cls)))
 
@@ -269,13 +276,16 @@ def run_episodes(env: ReachingEnv, policy, params, bank: TaskBank, steps: int | 
 def episode_outcomes(episodes, params, bank: TaskBank, batch: int = 256) -> Outcomes:
     """Every task of ``bank`` run once by ``episodes`` (from :func:`make_episodes`; reuse it
     to compile once), ``batch`` tasks per call (the last batch is padded by repeating tasks)."""
+    return Outcomes.of(final_states(episodes, params, bank, batch))
+
+
+def final_states(episodes, params, bank: TaskBank, batch: int = 256) -> State:
+    """The final states (numpy, [N] leading) of every task of ``bank`` run once by ``episodes``,
+    ``batch`` tasks per call, as :func:`episode_outcomes` runs them."""
     size = min(batch, bank.size)
     parts = []
     for start in range(0, bank.size, size):
         rows = np.arange(start, start + size) % bank.size
-        final = jax.device_get(episodes(bank.take(rows), params))
-        keep = slice(0, min(size, bank.size - start))
-        collision = final.collided.any(axis=-1)
-        parts.append(Outcomes(final.task.active.sum(axis=-1), final.success, collision & ~final.success,
-                              ~final.success & ~collision, final.step, final.reached.sum(axis=-1)).select(keep))
-    return Outcomes.concatenate(parts)
+        keep = min(size, bank.size - start)
+        parts.append(jax.tree.map(lambda x, k=keep: x[:k], jax.device_get(episodes(bank.take(rows), params))))
+    return jax.tree.map(lambda *x: np.concatenate(x), *parts)
