@@ -127,6 +127,16 @@ def test_planner_rollout_and_bad_input(policy_path):
     safe = Planner.load(policy_path, safe=True)  # shielded: the random policy's free-start path stays free
     path = safe.rollout(joints, bases, away, steps=20)
     assert not path.collided and path.waypoints.shape == (21, 2, 6)
+    goal = joints + np.array([0.4, 0.0, 0.0, 0.0, 0.0, 0.0])
+    there = evaluate_arms(bases, goal)
+    assert not there.collided.any()
+    hybrid = safe.rollout(joints, bases, np.concatenate([there.ee_pos, there.ee_quat], axis=-1), steps=5, goal_joints=goal)
+    assert hybrid.reached and not hybrid.collided and hybrid.handed_over > 0  # BiRRT finished what the policy did not
+    assert len(hybrid.waypoints) == 6 + hybrid.handed_over and (hybrid.min_distance > 0).all()
+    np.testing.assert_allclose(hybrid.waypoints[-1], goal, atol=1e-4)
+    assert np.all(np.abs(np.diff(hybrid.waypoints, axis=0)) <= ReachingEnv(2).max_step + 1e-6)
+    with pytest.raises(ValueError, match=r"goal_joints: expected shape \(2, 6\)"):
+        safe.rollout(joints, bases, away, goal_joints=goal[:1])
     pos = jnp.broadcast_to(jnp.asarray([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), (3, 2, 3))  # the bases above, wxyz
     quat = jnp.broadcast_to(jnp.asarray([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]), (3, 2, 4))
     targets = (jnp.zeros((3, 2, 3)), jnp.broadcast_to(quat, (3, 2, 4))) * 2

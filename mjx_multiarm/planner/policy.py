@@ -36,10 +36,12 @@ from flax import nnx, struct
 from mjx_multiarm.env.observation import ArmSnapshot, observe
 from mjx_multiarm.env.reaching import EVAL_TOLERANCE, EnvConfig, ReachingEnv
 from mjx_multiarm.geometry.collision import scene_contacts, swept_contacts
-from mjx_multiarm.geometry.evaluate import base_pose_arrays, check_finite
+from mjx_multiarm.expert.planner import SOLVED, PlannerConfig
+from mjx_multiarm.geometry.evaluate import base_pose_arrays, check_finite, evaluate_arms
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import NUM_JOINTS
-from mjx_multiarm.geometry.transforms import quat_angle
+from mjx_multiarm.geometry.transforms import quat_angle, xyzw_to_wxyz
+from mjx_multiarm.planner.handover import plan_from
 from mjx_multiarm.planner.policy_file import LoadedPolicy, load_policy
 
 #: The policy shipped with the package (trained by the command in benchmarks/RESULTS.md).
@@ -60,6 +62,8 @@ class PlannedPath:
         and the ground along the path (the start and every motion between waypoints,
         swept); negative where it collides.
       collided: bool, some arm collides along the path (``min_distance < 0``).
+      handed_over: waypoints at the end planned by BiRRT from where the policy stopped
+        (``rollout(..., goal_joints=...)``; 0 where the policy did it all).
     """
 
     waypoints: np.ndarray
@@ -68,6 +72,7 @@ class PlannedPath:
     angle_error: np.ndarray
     min_distance: np.ndarray
     collided: np.ndarray
+    handed_over: int = 0
 
 
 def policy_env_settings(env: ReachingEnv) -> dict:
@@ -197,22 +202,47 @@ class Planner:
         n, inputs = self._inputs(joints, base_poses, targets, previous_joints, previous_targets)
         return np.asarray(self.batched(n)(*inputs), np.float64)
 
-    def rollout(self, joints, base_poses, targets, steps: int = 200, tolerance=EVAL_TOLERANCE) -> PlannedPath:
+    def rollout(self, joints, base_poses, targets, steps: int = 200, tolerance=EVAL_TOLERANCE, goal_joints=None,
+                handover: PlannerConfig = PlannerConfig()) -> PlannedPath:
         """Run the policy from ``joints`` toward static ``targets`` for at most ``steps``
         control steps, stopping once every arm is within ``tolerance``; the path's collisions
         (the start, and every motion swept as the environment checks it) are reported in
-        :class:`PlannedPath` (with ``safe=True`` the motions are collision-free)."""
+        :class:`PlannedPath` (with ``safe=True`` the motions are collision-free).
+
+        ``goal_joints`` [n, 6] (configurations at the targets) makes it a hybrid planner
+        (:mod:`mjx_multiarm.planner.handover`): where the policy stops short without a
+        collision, BiRRT (``handover`` settings) plans the team from its last waypoint to
+        them, and the plan's waypoints (replay-checked at the environment's substeps) are
+        appended; their ``min_distance`` is measured at the waypoints.
+        """
         if steps < 1:
             raise ValueError(f"steps must be >= 1, got {steps}")
         n, (base_pos, base_quat, _, start, _, _, target_pos, target_quat) = self._inputs(joints, base_poses, targets, None, None)
+        if goal_joints is not None:
+            goal_joints = np.asarray(goal_joints, np.float64)
+            if goal_joints.shape != (n, NUM_JOINTS):
+                raise ValueError(f"goal_joints: expected shape ({n}, {NUM_JOINTS}) for {n} arms, got {goal_joints.shape}")
+            check_finite("goal_joints", goal_joints)
         outputs = self._rollout(n, steps)(base_pos, base_quat, start, target_pos, target_quat)
         waypoints, position, angle, distance = (np.asarray(x, np.float64) for x in outputs)
         reached = (position < tolerance[0]) & (angle < tolerance[1])
         done = np.flatnonzero(reached.all(axis=1))
         last = int(done[0]) if done.size else steps
         min_distance = distance[: last + 1].min(axis=0)
-        return PlannedPath(waypoints[: last + 1], bool(reached[last].all()), position[last], angle[last], min_distance,
+        path = PlannedPath(waypoints[: last + 1], bool(reached[last].all()), position[last], angle[last], min_distance,
                            bool((min_distance < 0).any()))
+        if goal_joints is None or path.reached or path.collided:
+            return path
+        result = plan_from(base_pos, base_quat, path.waypoints[-1], goal_joints, handover)
+        if result.status != SOLVED or not len(result.deltas):
+            return path
+        plan = path.waypoints[-1] + np.cumsum(result.deltas.astype(np.float64), axis=0)
+        base_poses = np.asarray(base_poses, np.float64)
+        at = evaluate_arms(np.broadcast_to(base_poses, (len(plan), *base_poses.shape)), plan)
+        position = np.linalg.norm(at.ee_pos[-1] - np.asarray(targets, np.float64)[:, :3], axis=-1)
+        angle = np.asarray(quat_angle(xyzw_to_wxyz(at.ee_quat[-1]), target_quat), np.float64)
+        return PlannedPath(np.concatenate([path.waypoints, plan]), bool(((position < tolerance[0]) & (angle < tolerance[1])).all()),
+                           position, angle, np.minimum(min_distance, at.min_distance.min(axis=0)), path.collided, len(plan))
 
 
 def _policy_joints(env: ReachingEnv, actor, base_pos, base_quat, prev_joints, joints, prev_targets, targets):
