@@ -273,6 +273,11 @@ def test_arms_driven_into_each_other_collide():
     assert not np.asarray(states.reward[hit + 1 :]).any()
     np.testing.assert_array_equal(states.joints[-1], states.joints[hit])
     assert int(final.step[0]) == hit + 1
+    harsh = ReachingEnv(2, EnvConfig(max_steps=120, collision_penalty=-1.0))  # the same drive, a larger penalty
+    states = rollout(harsh, 120)(bank.tasks, jnp.asarray([0.02, 0.1]))[1]
+    np.testing.assert_allclose(np.asarray(states.reward[hit, 0])[collided], -1.0, atol=1e-6)
+    with pytest.raises(ValueError, match="collision_penalty must be <= 0"):
+        EnvConfig(collision_penalty=0.5)
 
 
 def test_restoring_colliding_arms_keeps_the_episode_going():

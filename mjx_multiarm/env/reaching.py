@@ -105,6 +105,7 @@ class EnvConfig:
       neighbour_radius: bases within this distance (m) are observed; 1.7 as in the original
         code, 0.85 as in the paper text, 0 for the individualistic ablation (self only).
       reward: a key of :data:`REWARDS`.
+      collision_penalty: replaces that reward's collision term (the paper's -0.05) when set.
       shaping: k of the potential-based shaping term (module rules); 0, the paper's
         reward, adds nothing.
       dynamic_targets: targets of tasks with a speed move along their paths
@@ -123,6 +124,7 @@ class EnvConfig:
                                                                   "one per joint; none: full speed at +-1)")
     neighbour_radius: float = option(NEIGHBOUR_RADIUS, "bases within this distance (m) are observed (0: individualistic)")
     reward: str = option("team", "reward terms (selfish: the paper's ablation)", choices=tuple(REWARDS))
+    collision_penalty: float | None = option(None, "reward of an arm that collides in a step, <= 0 (none: the reward's, -0.05)")
     shaping: float = option(0.0, "potential-based reward shaping: every step pays K x the decrease of (position error in m "
                                  "+ 0.2 x orientation error in rad) (Ng et al. 1999; 0: the paper's reward)")
     dynamic_targets: bool = option(False, "targets of tasks with a speed move along their paths")
@@ -143,6 +145,8 @@ class EnvConfig:
             raise ValueError(f"EnvConfig.neighbour_radius must be >= 0, got {self.neighbour_radius}")
         if self.reward not in REWARDS:
             raise ValueError(f"EnvConfig.reward must be one of {sorted(REWARDS)}, got {self.reward!r}")
+        if self.collision_penalty is not None and not self.collision_penalty <= 0:
+            raise ValueError(f"EnvConfig.collision_penalty must be <= 0, got {self.collision_penalty}")
         if not self.shaping >= 0:
             raise ValueError(f"EnvConfig.shaping must be >= 0, got {self.shaping}")
         if len(self.tolerance) != 2 or not all(t > 0 for t in self.tolerance):
@@ -206,6 +210,8 @@ class ReachingEnv:
         self.max_arms = max_arms
         arm = self.scene.arm
         self.rewards = REWARDS[config.reward]
+        if config.collision_penalty is not None:
+            self.rewards = dataclasses.replace(self.rewards, collision=config.collision_penalty)
         #: [6] largest joint motion per control step (rad), swept-check substeps per step.
         self.max_step, self.substeps = step_limits(arm, config.sweep_resolution)
         #: [6] radians of joint motion per unit of action.
