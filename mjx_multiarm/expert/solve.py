@@ -68,17 +68,28 @@ def solve(checker: CollisionChecker, start, goal, config: PlannerConfig, seed: i
     return ExpertResult(task_id, REPLAY_COLLISION, empty, total_s, total_iterations, config.attempts)
 
 
+def team_checker(base_pos, base_quat, resolution: float) -> CollisionChecker:
+    """The collision checker of a team with bases ``base_pos`` [k, 3], ``base_quat`` [k, 4] (wxyz)."""
+    return CollisionChecker(base_pos, base_quat, load_arm().joint_range, resolution)
+
+
 def task_checker(tasks: Tasks, index: int, resolution: float) -> CollisionChecker:
     """The collision checker of the active arms of task ``index``."""
     active = np.asarray(tasks.active[index])
-    return CollisionChecker(tasks.base_pos[index][active], tasks.base_quat[index][active], load_arm().joint_range, resolution)
+    return team_checker(tasks.base_pos[index][active], tasks.base_quat[index][active], resolution)
+
+
+def solve_team(base_pos, base_quat, start, goal, config: PlannerConfig = PlannerConfig(), seed: int = 0, task_id: int = 0,
+               angle_tolerance: float = ANGLE_TOLERANCE) -> ExpertResult:
+    """The expert of a team (bases as :func:`team_checker`'s) from joints ``start`` to ``goal``
+    ([k, 6] each)."""
+    checker = team_checker(base_pos, base_quat, config.resolution)
+    return solve(checker, np.ravel(start), np.ravel(goal), config, seed, task_id, angle_tolerance)
 
 
 def solve_task(tasks: Tasks, index: int, config: PlannerConfig = PlannerConfig(), seed: int = 0,
                angle_tolerance: float = ANGLE_TOLERANCE) -> ExpertResult:
     """The expert of task ``index`` of numpy ``tasks`` (start -> goal)."""
     active = np.asarray(tasks.active[index])
-    start = np.asarray(tasks.start_joints[index])[active].ravel()
-    goal = np.asarray(tasks.goal_joints[index])[active].ravel()
-    checker = task_checker(tasks, index, config.resolution)
-    return solve(checker, start, goal, config, seed, int(tasks.task_id[index]), angle_tolerance)
+    return solve_team(tasks.base_pos[index][active], tasks.base_quat[index][active], np.asarray(tasks.start_joints[index])[active],
+                      np.asarray(tasks.goal_joints[index])[active], config, seed, int(tasks.task_id[index]), angle_tolerance)

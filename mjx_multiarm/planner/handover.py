@@ -3,7 +3,7 @@
 With safe execution (:mod:`mjx_multiarm.env.shield`) the policy never collides, and the
 tasks it fails end where its team got stuck (a deadlock: arms giving way to each other
 until the episode runs out). From there the BiRRT expert plans the whole team to its goal
-configuration (:func:`mjx_multiarm.expert.solve.solve`, its steps replayed with the
+configuration (:func:`mjx_multiarm.expert.solve.solve_team`, its steps replayed with the
 environment's rules before they count); the task succeeds when that plan does. The
 trajectory is the policy's steps followed by the plan's. :func:`birrt_handover` does this
 for evaluated tasks; ``Planner.rollout(..., goal_joints=...)`` for one team.
@@ -16,19 +16,9 @@ import dataclasses
 import numpy as np
 
 from mjx_multiarm.env.wrappers import Outcomes
-from mjx_multiarm.expert.checker import CollisionChecker
 from mjx_multiarm.expert.planner import SOLVED, PlannerConfig
-from mjx_multiarm.expert.solve import ExpertResult, solve
-from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.expert.solve import solve_team
 from mjx_multiarm.tasks.types import Tasks
-
-
-def plan_from(base_pos, base_quat, start, goal, config: PlannerConfig = PlannerConfig(), seed: int = 0,
-              task_id: int = 0) -> ExpertResult:
-    """The BiRRT expert's steps for a team from joints ``start`` to ``goal`` ([k, 6] each;
-    bases ``base_pos`` [k, 3], ``base_quat`` [k, 4] wxyz), replay-checked as every expert."""
-    checker = CollisionChecker(base_pos, base_quat, load_arm().joint_range, config.resolution)
-    return solve(checker, np.asarray(start, np.float64).ravel(), np.asarray(goal, np.float64).ravel(), config, seed, task_id)
 
 
 def birrt_handover(tasks: Tasks, outcomes: Outcomes, final_joints: np.ndarray, config: PlannerConfig = PlannerConfig(),
@@ -51,8 +41,8 @@ def birrt_handover(tasks: Tasks, outcomes: Outcomes, final_joints: np.ndarray, c
     plan_s = np.full(tasks.num_tasks, np.nan)
     for i in np.flatnonzero(outcomes.timeout):
         arms = int(outcomes.team[i])
-        result = plan_from(tasks.base_pos[i][:arms], tasks.base_quat[i][:arms], final_joints[i][:arms],
-                           tasks.goal_joints[i][:arms], config, seed, int(tasks.task_id[i]))
+        result = solve_team(tasks.base_pos[i][:arms], tasks.base_quat[i][:arms], final_joints[i][:arms],
+                            tasks.goal_joints[i][:arms], config, seed, int(tasks.task_id[i]))
         plan_s[i] = result.plan_s
         if result.status == SOLVED:
             success[i], timeout[i], steps[i], reached[i] = True, False, steps[i] + len(result.deltas), outcomes.team[i]

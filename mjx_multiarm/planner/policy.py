@@ -35,13 +35,13 @@ from flax import nnx, struct
 
 from mjx_multiarm.env.observation import ArmSnapshot, observe
 from mjx_multiarm.env.reaching import EVAL_TOLERANCE, EnvConfig, ReachingEnv
-from mjx_multiarm.geometry.collision import scene_contacts, swept_contacts
 from mjx_multiarm.expert.planner import SOLVED, PlannerConfig
+from mjx_multiarm.expert.solve import solve_team
+from mjx_multiarm.geometry.collision import scene_contacts, swept_contacts
 from mjx_multiarm.geometry.evaluate import base_pose_arrays, check_finite, evaluate_arms
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import NUM_JOINTS
 from mjx_multiarm.geometry.transforms import quat_angle, xyzw_to_wxyz
-from mjx_multiarm.planner.handover import plan_from
 from mjx_multiarm.planner.policy_file import LoadedPolicy, load_policy
 
 #: The policy shipped with the package (trained by the command in benchmarks/RESULTS.md).
@@ -233,7 +233,7 @@ class Planner:
                            bool((min_distance < 0).any()))
         if goal_joints is None or path.reached or path.collided:
             return path
-        result = plan_from(base_pos, base_quat, path.waypoints[-1], goal_joints, handover)
+        result = solve_team(base_pos, base_quat, path.waypoints[-1], goal_joints, handover)
         if result.status != SOLVED or not len(result.deltas):
             return path
         plan = path.waypoints[-1] + np.cumsum(result.deltas.astype(np.float64), axis=0)
