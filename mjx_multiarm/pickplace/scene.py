@@ -1,0 +1,289 @@
+"""The pick-and-place scene: four position-actuated UR5 arms with parallel grippers, a bin,
+one object slot per arm, a floor; one MJCF model for MuJoCo C and MJX.
+
+Written with ``MjSpec`` from the project's UR5 MJCF and the derived assets
+(``assets/pickplace.json``, :mod:`mjx_multiarm.pickplace.derive`). Layout as the original
+demo: bases on a 1.2 m square at z = 0.01 (arms 2 and 3 turned by pi), the bin at the centre,
+each arm's object 1 m from the centre in front of it.
+
+Every arm has one object slot: a free body (0.5 kg, the original's inertia) carrying the
+convex pieces of every object; a run selects one object per slot and parks the other pieces
+100 m overhead (:meth:`PickPlaceScene.geom_pos`), so one compiled model serves every draw.
+Grasping is a weld between ``ee_link`` and the slot body, off until the grasp; its relative
+pose is written at activation (``eq_data``).
+
+Contacts (contype/conaffinity): objects collide with the floor, the bin and each other; arm
+geoms (the collision capsules, the gripper box and the fingers) collide with the floor, the
+bin and objects. Arm-arm contact is not simulated: those collisions are detected with the
+project's collision kernel (the training model), and end a run before they could matter.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import pathlib
+
+import mujoco
+import numpy as np
+
+from mjx_multiarm.geometry.robot import ARM_XML, load_arm
+
+ASSETS = pathlib.Path(__file__).resolve().parents[1] / "assets" / "pickplace.json"
+NUM_ARMS = 4
+#: (x, y, yaw) of each base (the original demo's ``robot_base_poses``), at z = BASE_HEIGHT.
+ARM_BASES = np.array([[0.6, 0.6, 0.0], [0.6, -0.6, 0.0], [-0.6, 0.6, np.pi], [-0.6, -0.6, np.pi]])
+BASE_HEIGHT = 0.01
+#: Where each arm's object stands (x, y) and where it drops it (ee_link position).
+OBJECT_XY = np.array([[1.0, 0.0], [0.0, -1.0], [0.0, 1.0], [-1.0, 0.0]])
+DUMP_POSITIONS = np.array([[0.2, 0.2, 0.5], [0.2, -0.2, 0.5], [-0.2, 0.2, 0.5], [-0.2, -0.2, 0.5]])
+TIMESTEP = 1.0 / 240.0  # the original's physics rate
+PARKED_OFFSET = np.array([0.0, 0.0, 100.0])  # unused object pieces, relative to their slot
+FLOOR_HALF = np.array([3.0, 3.0, 0.05])  # the floor's top face is z = 0
+OBJECT_MASS = 0.5
+OBJECT_INERTIA = 1e-4
+
+#: Arm joint servos: stiffness (N m/rad), damping (N m s/rad) and torque limits (UR5: 150 N m
+#: at the base, shoulder and elbow, 28 N m at the wrists). Gravity is compensated.
+ARM_KP = np.array([4000.0, 4000.0, 3000.0, 600.0, 600.0, 300.0])
+ARM_KV = np.array([250.0, 250.0, 150.0, 25.0, 25.0, 10.0])
+ARM_TORQUE = np.array([150.0, 150.0, 150.0, 28.0, 28.0, 28.0])
+ARM_ARMATURE = 0.05
+
+#: The parallel gripper (Robotiq 2F-85 numbers): each finger travels half the 85 mm stroke
+#: along ee_link z, toward the approach axis ee_link x; pads 37.5 x 22 mm, centred 0.13 m
+#: out along the approach axis.
+GRIPPER_STROKE = 0.085
+PAD_CENTRE_X = 0.13
+PAD_HALF = np.array([0.01875, 0.011, 0.004])
+FINGER_KP = 200.0
+FINGER_FORCE = 60.0
+
+#: contype / conaffinity bits.
+STATIC_BITS = (1, 3)  # floor and bin: touched by objects and arms
+OBJECT_BITS = (1, 3)
+ARM_BITS = (2, 0)  # arms touch only what has bit 2 in conaffinity: floor, bin, objects
+
+# Kinds of geom owners, for classifying contacts.
+FLOOR, BIN, ARM, OBJECT = 0, 1, 2, 3
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectAsset:
+    """One object: its convex pieces (object frame, m), its lowest point and its grasps
+    (ee_link pose in the object frame, [N, 7] position + wxyz)."""
+
+    name: str
+    hulls: tuple[np.ndarray, ...]
+    bottom: float
+    grasps: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class PickPlaceAssets:
+    objects: dict[str, ObjectAsset]
+    bin_boxes: tuple[dict, ...]
+
+
+@functools.cache
+def load_assets(path: str | None = None) -> PickPlaceAssets:
+    """Read the derived assets (``assets/pickplace.json`` by default)."""
+    path = pathlib.Path(path or ASSETS)
+    if not path.is_file():
+        raise FileNotFoundError(f"pick-and-place assets not found: {path} "
+                                "(derive them with python -m mjx_multiarm.pickplace.derive)")
+    raw = json.loads(path.read_text())
+    objects = {}
+    for name, obj in raw["objects"].items():
+        grasps = np.asarray(obj["grasps"], float)
+        if grasps.ndim != 2 or grasps.shape[1] != 7 or not len(grasps):
+            raise ValueError(f"{path}: object {name!r} needs grasps of shape [N, 7], got {grasps.shape}")
+        objects[name] = ObjectAsset(name, tuple(np.asarray(h, float) for h in obj["hulls"]), float(obj["bottom"]), grasps)
+    return PickPlaceAssets(objects, tuple(raw["bin"]["boxes"]))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PickPlaceScene:
+    """The compiled scene and the indices the protocol and the backends use.
+
+    Hashable by identity (a static argument of ``jax.jit``).
+    """
+
+    model: mujoco.MjModel
+    assets: PickPlaceAssets
+    object_names: tuple[str, ...]
+    arm_qpos: np.ndarray  # [4, 6] qpos address of each arm's joints
+    arm_dof: np.ndarray  # [4, 6]
+    finger_qpos: np.ndarray  # [4, 2]
+    arm_actuators: np.ndarray  # [4, 6]
+    finger_actuators: np.ndarray  # [4, 2]
+    object_qpos: np.ndarray  # [4] qpos address of each slot's free joint (7 numbers)
+    object_dof: np.ndarray  # [4] its dof address (6 numbers)
+    object_body: np.ndarray  # [4]
+    ee_body: np.ndarray  # [4]
+    welds: np.ndarray  # [4] equality id of each arm's grasp weld
+    piece_geoms: dict[str, np.ndarray]  # object name -> [4, pieces] geom ids in each slot
+    geom_kind: np.ndarray  # [ngeom] FLOOR / BIN / ARM / OBJECT
+    geom_slot: np.ndarray  # [ngeom] arm or object slot (-1 for floor and bin)
+
+    def object_index(self, name: str) -> int:
+        if name not in self.object_names:
+            raise ValueError(f"unknown object {name!r}; choose from {', '.join(self.object_names)}")
+        return self.object_names.index(name)
+
+    def geom_pos(self, objects) -> np.ndarray:
+        """``model.geom_pos`` [ngeom, 3] with, in each slot i, the pieces of ``objects[i]``
+        (a name or an index) at home and every other piece parked."""
+        if len(objects) != NUM_ARMS:
+            raise ValueError(f"the pick-and-place layout needs one object per arm ({NUM_ARMS}), got {len(objects)}")
+        pos = self.model.geom_pos.copy()
+        for name, geoms in self.piece_geoms.items():
+            for slot in range(NUM_ARMS):
+                chosen = objects[slot]
+                chosen = self.object_names[chosen] if isinstance(chosen, (int, np.integer)) else chosen
+                if chosen not in self.object_names:
+                    raise ValueError(f"unknown object {chosen!r}; choose from {', '.join(self.object_names)}")
+                if name != chosen:
+                    pos[geoms[slot]] += PARKED_OFFSET
+        return pos
+
+
+def _add_gripper(ee: mujoco.MjsBody) -> None:
+    """Two fingers on slide joints along ee_link z, each with a pad, and their servos' bodies."""
+    half_stroke = GRIPPER_STROKE / 2
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        finger = ee.add_body(name=f"finger_{side}", pos=[0.0, 0.0, sign * half_stroke])
+        finger.add_joint(name=f"finger_{side}", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0.0, 0.0, -sign],
+                         range=[0.0, half_stroke], armature=0.01, damping=5.0)
+        finger.mass = 0.05
+        finger.inertia = [1e-5, 1e-5, 1e-5]
+        finger.explicitinertial = True
+        kw = dict(type=mujoco.mjtGeom.mjGEOM_BOX, contype=ARM_BITS[0], conaffinity=ARM_BITS[1], group=1,
+                  rgba=[0.15, 0.15, 0.15, 1.0], friction=[1.0, 0.005, 0.0001])
+        finger.add_geom(name=f"pad_{side}", pos=[PAD_CENTRE_X, 0.0, sign * PAD_HALF[2]], size=PAD_HALF, **kw)
+        finger.add_geom(name=f"finger_{side}", pos=[0.10, 0.0, sign * (2 * PAD_HALF[2] + 0.006)],
+                        size=[0.035, PAD_HALF[1], 0.006], **kw)
+
+
+def _arm_spec(index: int) -> mujoco.MjSpec:
+    arm = mujoco.MjSpec.from_file(str(ARM_XML))
+    arm.body("base_link").mocap = False
+    for geom in arm.geoms:
+        geom.contype, geom.conaffinity = ARM_BITS
+        geom.group = 1  # visible in renders
+        geom.rgba = [0.55, 0.6, 0.7, 1.0] if geom.name != "ee_link_0" else [0.2, 0.2, 0.2, 1.0]
+    for body in arm.bodies:
+        body.gravcomp = 1.0
+    for joint in arm.joints:
+        joint.armature = ARM_ARMATURE
+        joint.actgravcomp = False
+    _add_gripper(arm.body("ee_link"))
+    for body in (arm.body("finger_left"), arm.body("finger_right")):
+        body.gravcomp = 1.0
+    return arm
+
+
+def build_spec(assets: PickPlaceAssets) -> mujoco.MjSpec:
+    """The scene as an ``MjSpec`` (see the module docstring)."""
+    spec = mujoco.MjSpec()
+    spec.modelname = "pickplace"
+    spec.option.timestep = TIMESTEP
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    spec.option.cone = mujoco.mjtCone.mjCONE_PYRAMIDAL
+    # MJX: cull each collision function's candidate pairs to the nearest few (bounding spheres).
+    spec.add_numeric(name="max_geom_pairs", data=[16])
+    world = spec.worldbody
+    # A box, not a plane: parked object pieces (far away in their slot's frame) never reach it.
+    world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_BOX, pos=[0.0, 0.0, -FLOOR_HALF[2]], size=FLOOR_HALF,
+                   rgba=[0.85, 0.85, 0.82, 1],
+                   contype=STATIC_BITS[0], conaffinity=STATIC_BITS[1], friction=[1.0, 0.005, 0.0001])
+    world.add_light(pos=[0, 0, 4], dir=[0, 0, -1], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
+    bin_body = world.add_body(name="bin")
+    for box in assets.bin_boxes:
+        bin_body.add_geom(name=f"bin_{box['name']}", type=mujoco.mjtGeom.mjGEOM_BOX, pos=box["pos"], size=box["size"],
+                          euler=box["euler"], contype=STATIC_BITS[0], conaffinity=STATIC_BITS[1], group=1,
+                          rgba=[0.35, 0.55, 0.85, 1.0], friction=[1.0, 0.005, 0.0001])
+    for name, obj in assets.objects.items():
+        for k, hull in enumerate(obj.hulls):
+            spec.add_mesh(name=f"{name}_{k}", uservert=hull.reshape(-1).tolist())
+    for i, (x, y, yaw) in enumerate(ARM_BASES):
+        frame = world.add_frame(pos=[x, y, BASE_HEIGHT], quat=[np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+        spec.attach(_arm_spec(i), prefix=f"arm{i}/", frame=frame)
+        for j, joint in enumerate(load_arm().joint_names):
+            spec.add_actuator(name=f"arm{i}/{joint}", target=f"arm{i}/{joint}", trntype=mujoco.mjtTrn.mjTRN_JOINT,
+                              gaintype=mujoco.mjtGain.mjGAIN_FIXED, biastype=mujoco.mjtBias.mjBIAS_AFFINE,
+                              gainprm=[ARM_KP[j]] + [0] * 9, biasprm=[0, -ARM_KP[j], -ARM_KV[j]] + [0] * 7,
+                              ctrlrange=[-2 * np.pi, 2 * np.pi], forcerange=[-ARM_TORQUE[j], ARM_TORQUE[j]])
+        for side in ("left", "right"):
+            spec.add_actuator(name=f"arm{i}/finger_{side}", target=f"arm{i}/finger_{side}",
+                              trntype=mujoco.mjtTrn.mjTRN_JOINT, gaintype=mujoco.mjtGain.mjGAIN_FIXED,
+                              biastype=mujoco.mjtBias.mjBIAS_AFFINE, gainprm=[FINGER_KP] + [0] * 9,
+                              biasprm=[0, -FINGER_KP, -10.0] + [0] * 7, ctrlrange=[0.0, GRIPPER_STROKE / 2],
+                              forcerange=[-FINGER_FORCE, FINGER_FORCE])
+        slot = world.add_body(name=f"object{i}", pos=[*OBJECT_XY[i], 0.5])
+        slot.add_freejoint(name=f"object{i}")
+        slot.mass, slot.inertia, slot.explicitinertial = OBJECT_MASS, [OBJECT_INERTIA] * 3, True
+        slot.ipos, slot.iquat = [0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]  # at the object frame's origin
+        for name, obj in assets.objects.items():
+            for k in range(len(obj.hulls)):
+                slot.add_geom(name=f"object{i}/{name}_{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"{name}_{k}",
+                              contype=OBJECT_BITS[0], conaffinity=OBJECT_BITS[1], group=1, density=0,
+                              rgba=[0.9, 0.45, 0.15, 1.0], friction=[1.0, 0.005, 0.0001])
+        spec.add_equality(name=f"grasp{i}", type=mujoco.mjtEq.mjEQ_WELD, name1=f"arm{i}/ee_link", name2=f"object{i}",
+                          objtype=mujoco.mjtObj.mjOBJ_BODY, active=False,
+                          data=[0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 1, 0])
+    return spec
+
+
+def _geom_owners(m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+    kind = np.full(m.ngeom, -1)
+    slot = np.full(m.ngeom, -1)
+    for g in range(m.ngeom):
+        name = m.geom(g).name
+        if name == "floor":
+            kind[g] = FLOOR
+        elif name.startswith("bin_"):
+            kind[g] = BIN
+        elif name.startswith("arm"):
+            kind[g], slot[g] = ARM, int(name[3])
+        elif name.startswith("object"):
+            kind[g], slot[g] = OBJECT, int(name[6])
+    if (kind < 0).any():
+        raise AssertionError(f"unclassified geoms: {[m.geom(g).name for g in np.flatnonzero(kind < 0)]}")
+    return kind, slot
+
+
+@functools.cache
+def build_scene(assets_path: str | None = None) -> PickPlaceScene:
+    """Compile (once per assets file) the pick-and-place scene."""
+    assets = load_assets(assets_path)
+    m = build_spec(assets).compile()
+    joints = load_arm().joint_names
+    kind, slot = _geom_owners(m)
+
+    def ids(fn, names):
+        return np.array([[fn(f"arm{i}/{n}").id for n in names] for i in range(NUM_ARMS)])
+
+    arm_joint_ids = ids(m.joint, joints)
+    finger_joint_ids = ids(m.joint, ("finger_left", "finger_right"))
+    object_joints = np.array([m.joint(f"object{i}").id for i in range(NUM_ARMS)])
+    return PickPlaceScene(
+        model=m,
+        assets=assets,
+        object_names=tuple(assets.objects),
+        arm_qpos=m.jnt_qposadr[arm_joint_ids],
+        arm_dof=m.jnt_dofadr[arm_joint_ids],
+        finger_qpos=m.jnt_qposadr[finger_joint_ids],
+        arm_actuators=ids(m.actuator, joints),
+        finger_actuators=ids(m.actuator, ("finger_left", "finger_right")),
+        object_qpos=m.jnt_qposadr[object_joints],
+        object_dof=m.jnt_dofadr[object_joints],
+        object_body=np.array([m.body(f"object{i}").id for i in range(NUM_ARMS)]),
+        ee_body=np.array([m.body(f"arm{i}/ee_link").id for i in range(NUM_ARMS)]),
+        welds=np.array([m.equality(f"grasp{i}").id for i in range(NUM_ARMS)]),
+        piece_geoms={name: np.array([[m.geom(f"object{i}/{name}_{k}").id for k in range(len(obj.hulls))]
+                                     for i in range(NUM_ARMS)]) for name, obj in assets.objects.items()},
+        geom_kind=kind,
+        geom_slot=slot,
+    )
