@@ -21,9 +21,18 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from mjx_multiarm.pickplace.plans import RunPlan
 from mjx_multiarm.pickplace.protocol import (
-    CAUSES, MAX_CONTROL_STEPS, PHASES, SUBSTEPS, ControllerState, RunPlan, Sensors, arm_contacts, initial_state,
-    make_controller, relative_pose,
+    CAUSES,
+    MAX_CONTROL_STEPS,
+    PHASES,
+    SUBSTEPS,
+    ControllerState,
+    Sensors,
+    arm_contacts,
+    initial_state,
+    make_controller,
+    relative_pose,
 )
 from mjx_multiarm.pickplace.scene import NUM_ARMS, PickPlaceScene
 
@@ -98,7 +107,7 @@ def run_mujoco(scene: PickPlaceScene, policy_step, plans: RunPlan, max_control_s
                on_step=None) -> list[RunResult]:
     """Run every plan of ``plans`` (leading dim = runs) on MuJoCo C, in lockstep.
 
-    ``on_step(step, datas)`` is called after every control step (rendering). Each run has its
+    ``on_step(step, datas, state)`` is called after every control step (rendering). Each run has its
     own model copy (its object selection and weld poses).
     """
     runs = len(plans.objects)
@@ -139,7 +148,7 @@ def run_mujoco(scene: PickPlaceScene, policy_step, plans: RunPlan, max_control_s
                 _sense_mujoco(scene, d, touched[r])
         sensors = _sensors_mujoco(scene, datas, touched)
         if on_step is not None:
-            on_step(step, datas)
+            on_step(step, datas, state)
     seconds = (time.perf_counter() - start) / runs
     return RunResult.collect(state, np.stack([d.xpos[scene.object_body] for d in datas]), seconds)
 

@@ -32,8 +32,6 @@ collisions, and touching its own object outside the grasp (``to_grasp`` .. ``rai
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -41,13 +39,22 @@ from flax import struct
 
 from mjx_multiarm.env.reaching import CONTROL_PERIOD
 from mjx_multiarm.geometry.collision import scene_contacts
-from mjx_multiarm.geometry.evaluate import evaluate_arms
-from mjx_multiarm.geometry.ik import solve_poses, solve_positions
+from mjx_multiarm.geometry.ik import solve_poses
 from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.geometry.scene import build_scene as build_arm_scene
 from mjx_multiarm.geometry.transforms import quat_angle, quat_mul, quat_to_mat
+from mjx_multiarm.pickplace.plans import RunPlan
 from mjx_multiarm.pickplace.scene import (
-    ARM, ARM_BASES, BASE_HEIGHT, BIN, DUMP_POSITIONS, FLOOR, GRIPPER_STROKE, NUM_ARMS, OBJECT, OBJECT_XY, TIMESTEP,
+    ARM,
+    BASE_POS,
+    BASE_QUAT,
+    BIN,
+    FLOOR,
+    GRIPPER_STROKE,
+    NUM_ARMS,
+    OBJECT,
+    TIMESTEP,
     PickPlaceScene,
 )
 
@@ -59,7 +66,6 @@ PHASES = ("reach_pregrasp", "to_pregrasp", "to_grasp", "close", "lift", "reach_d
 GRASP_WINDOW = (TO_GRASP, RAISE)
 #: A policy phase ends within 5 cm / 0.2 rad of its target (the original's tolerances).
 PHASE_TOLERANCE = (0.05, 0.2)
-PREGRASP_BACKOFF = 0.10
 LIFT_HEIGHT = 0.30
 DUMP_DROP = 0.05
 #: Scripted moves: at least 0.5 s (the original's duration), at most half the velocity limit.
@@ -68,9 +74,6 @@ SCRIPTED_SPEED = 0.5
 SUBSTEPS = round(CONTROL_PERIOD / TIMESTEP)
 #: The original's limit: 100,000 physics steps of 1/240 s.
 MAX_CONTROL_STEPS = 100_000 // SUBSTEPS
-#: Initial configurations: home + U(-0.4, 0.4) rad per joint, collision-free, ee above 0.2 m.
-INIT_NOISE = 0.4
-INIT_MIN_EE_HEIGHT = 0.2
 
 #: Why a run ended (``cause``), or the first stricter-accounting violation (``strict_cause``).
 CAUSES = ("none", "arm-arm", "arm-floor", "arm-bin", "arm-object", "arm-self", "outside-bin", "timeout")
@@ -78,25 +81,6 @@ CAUSES = ("none", "arm-arm", "arm-floor", "arm-bin", "arm-object", "arm-self", "
 #: Physics contact kinds per arm (the sensors' ``contacts`` [4, 4]).
 TOUCH_FLOOR, TOUCH_BIN, TOUCH_OWN_OBJECT, TOUCH_OTHER_OBJECT = range(4)
 
-BASE_POS = np.concatenate([ARM_BASES[:, :2], np.full((NUM_ARMS, 1), BASE_HEIGHT)], axis=1)
-BASE_QUAT = np.stack([np.cos(ARM_BASES[:, 2] / 2), 0 * ARM_BASES[:, 2], 0 * ARM_BASES[:, 2], np.sin(ARM_BASES[:, 2] / 2)], 1)
-
-
-@struct.dataclass
-class RunPlan:
-    """One run's draws and the poses its phases head for (world frame, wxyz); leading batch
-    dims allowed."""
-
-    objects: jnp.ndarray  # [4] object index per arm
-    init_joints: jnp.ndarray  # [4, 6]
-    object_pose: jnp.ndarray  # [4, 7] spawn pose (position, wxyz)
-    reach_pos: jnp.ndarray  # [4, 3] the policy's target in reach_pregrasp: the pregrasp position ...
-    reach_quat: jnp.ndarray  # [4, 4] ... with the orientation of a training target there
-    pregrasp_joints: jnp.ndarray  # [4, 6] the exact pregrasp (to_pregrasp's goal)
-    grasp_joints: jnp.ndarray  # [4, 6]
-    dump_pos: jnp.ndarray  # [4, 3]
-    dump_quat: jnp.ndarray  # [4, 4]
-    dump_joints: jnp.ndarray  # [4, 6]
 
 
 @struct.dataclass
@@ -151,7 +135,7 @@ def bin_interior(scene: PickPlaceScene) -> np.ndarray:
 def initial_state(plan: RunPlan) -> ControllerState:
     """The state at the start of a run (every arm in ``reach_pregrasp``)."""
     joints = jnp.asarray(plan.init_joints, jnp.float32)
-    frames = forward_kinematics(_arm(), BASE_POS, BASE_QUAT, joints)
+    frames = forward_kinematics(load_arm(), BASE_POS, BASE_QUAT, joints)
     zeros = jnp.zeros(NUM_ARMS, jnp.int32)
     return ControllerState(
         phase=zeros, phase_step=zeros, duration=zeros + 1, start=joints, goal=joints,
@@ -161,20 +145,15 @@ def initial_state(plan: RunPlan) -> ControllerState:
         cause_phase=jnp.int32(-1), strict_cause=jnp.int32(NONE), strict_step=jnp.int32(-1))
 
 
-@functools.cache
-def _arm():
-    return build_arm_scene(NUM_ARMS).arm
-
-
 def _move_steps(start, goal):
-    speed = SCRIPTED_SPEED * jnp.asarray(_arm().velocity_limit, jnp.float32) * CONTROL_PERIOD
+    speed = SCRIPTED_SPEED * jnp.asarray(load_arm().velocity_limit, jnp.float32) * CONTROL_PERIOD
     return jnp.maximum(SCRIPTED_STEPS, jnp.ceil(jnp.max(jnp.abs(goal - start) / speed, axis=-1))).astype(jnp.int32)
 
 
 def _lifted(joints, dz: float):
     """Joint angles that move each arm's ee_link by ``dz`` vertically, orientation kept."""
-    frames = forward_kinematics(_arm(), jnp.zeros(3), jnp.array([1.0, 0.0, 0.0, 0.0]), joints)
-    return solve_poses(_arm(), frames.ee_pos + jnp.array([0.0, 0.0, dz]), frames.ee_quat, joints, iterations=40)[0]
+    frames = forward_kinematics(load_arm(), jnp.zeros(3), jnp.array([1.0, 0.0, 0.0, 0.0]), joints)
+    return solve_poses(load_arm(), frames.ee_pos + jnp.array([0.0, 0.0, dz]), frames.ee_quat, joints, iterations=40)[0]
 
 
 def _first(flags_by_cause):
@@ -192,14 +171,14 @@ def make_controller(policy_step, scene: PickPlaceScene, max_steps: int = MAX_CON
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
     arm_scene = build_arm_scene(NUM_ARMS)
     interior = jnp.asarray(bin_interior(scene), jnp.float32)
-    home = jnp.asarray(_arm().home, jnp.float32)
+    home = jnp.asarray(load_arm().home, jnp.float32)
     base_pos, base_quat = jnp.asarray(BASE_POS, jnp.float32), jnp.asarray(BASE_QUAT, jnp.float32)
     active = jnp.ones(NUM_ARMS, bool)
 
     def control(plan: RunPlan, state: ControllerState, sensors: Sensors):
         joints = sensors.joints
         phase = state.phase
-        frames = forward_kinematics(_arm(), base_pos, base_quat, joints)
+        frames = forward_kinematics(load_arm(), base_pos, base_quat, joints)
         # Collisions of the configuration reached, under both rules.
         kernel = scene_contacts(arm_scene, base_pos, base_quat, joints, active)
         touch = sensors.contacts
@@ -313,199 +292,3 @@ def relative_pose(ee_pos, ee_quat, obj_pos, obj_quat):
     pos = jnp.einsum("...ji,...j->...i", rot, obj_pos - ee_pos)
     conj = ee_quat * jnp.array([1.0, -1.0, -1.0, -1.0])
     return pos, quat_mul(conj, obj_quat)
-
-
-# ----------------------------------------------------------------------------------------
-# Run plans: draws from a seed, grasps and dump poses.
-
-
-#: Resting orientations tried besides upright (wxyz): the cube rests on any face.
-RESTING = {"cube": np.array([[1.0, 0.0, 0.0, 0.0], [np.sqrt(0.5), np.sqrt(0.5), 0.0, 0.0],
-                             [np.sqrt(0.5), -np.sqrt(0.5), 0.0, 0.0], [np.sqrt(0.5), 0.0, np.sqrt(0.5), 0.0],
-                             [np.sqrt(0.5), 0.0, -np.sqrt(0.5), 0.0], [0.0, 1.0, 0.0, 0.0]])}
-#: Yaws tried, about the direction from the object to its arm's base.
-SPAWN_YAWS = np.pi / 2 * np.arange(4)
-
-
-def spawn_candidates(scene: PickPlaceScene, arm: int, obj: int) -> np.ndarray:
-    """[K, 7] poses arm ``arm``'s object ``obj`` may stand in (position, wxyz): on the floor
-    1 m from the centre in front of the arm, upright (or resting on a face, for the cube),
-    turned about the vertical by :data:`SPAWN_YAWS` from facing the arm's base."""
-    xy = OBJECT_XY[arm]
-    facing = np.arctan2(*(ARM_BASES[arm, 1::-1] - xy[::-1]))
-    asset = scene.assets.objects[scene.object_names[obj]]
-    points = np.concatenate(asset.hulls)
-    poses = []
-    for rest in RESTING.get(asset.name, np.array([[1.0, 0.0, 0.0, 0.0]])):
-        for yaw in facing + SPAWN_YAWS:
-            quat = np.asarray(quat_mul(jnp.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]), jnp.asarray(rest)))
-            bottom = (points @ np.asarray(quat_to_mat(jnp.asarray(quat))).T)[:, 2].min()
-            poses.append([*xy, -bottom + 1e-3, *quat])
-    return np.array(poses)
-
-
-def _to_base(arm: int, pos, quat):
-    """World poses -> arm ``arm``'s base frame (numpy, wxyz)."""
-    yaw = ARM_BASES[arm, 2]
-    c, s = np.cos(yaw), np.sin(yaw)
-    rel = np.asarray(pos) - BASE_POS[arm]
-    pos_b = np.stack([c * rel[..., 0] + s * rel[..., 1], -s * rel[..., 0] + c * rel[..., 1], rel[..., 2]], -1)
-    quat_b = np.asarray(quat_mul(jnp.asarray(BASE_QUAT[arm] * [1, -1, -1, -1]), jnp.asarray(quat)))
-    return pos_b, quat_b
-
-
-def _ik(arm: int, pos, quat, seeds: np.ndarray):
-    """Best IK solution for world poses [N, 3], [N, 4] over ``seeds`` ([S, 6] for every pose,
-    or [N, S, 6]): (joints [N, 6], ok [N]); the best is the solved one nearest home."""
-    pos_b, quat_b = _to_base(arm, pos, quat)
-    n = len(pos_b)
-    seeds = np.broadcast_to(seeds, (n, *np.shape(seeds)[-2:]))
-    s = seeds.shape[1]
-    tile = lambda x: jnp.asarray(np.repeat(x, s, axis=0), jnp.float32)  # noqa: E731
-    joints, pe, ae = _solve(tile(pos_b), tile(quat_b), jnp.asarray(seeds.reshape(n * s, 6), jnp.float32))
-    joints, pe, ae = (np.asarray(x).reshape(n, s, *np.shape(x)[1:]) for x in (joints, pe, ae))
-    ok = (pe < 1e-3) & (ae < 1e-2) & (np.abs(joints) <= 2 * np.pi).all(-1)
-    cost = np.where(ok, np.abs(joints - _arm().home).sum(-1), np.inf)
-    best = cost.argmin(axis=1)
-    return joints[np.arange(n), best], ok[np.arange(n), best]
-
-
-@jax.jit
-def _solve(pos, quat, seeds):
-    return solve_poses(_arm(), pos, quat, seeds, iterations=150)
-
-
-def _ik_seeds() -> np.ndarray:
-    home = _arm().home
-    seeds = [home]
-    for pan in np.linspace(-np.pi, np.pi, 8, endpoint=False):
-        for wrist in (-np.pi / 2, np.pi / 2):
-            seeds.append([pan, -1.2, 1.6, -1.9, wrist, 0.0])
-    return np.array(seeds)
-
-
-def _clear(arm: int, joints: np.ndarray) -> np.ndarray:
-    """[N] the arm alone at ``joints`` [N, 6] touches neither itself nor the ground."""
-    base = np.broadcast_to(np.concatenate([BASE_POS[arm], _xyzw(BASE_QUAT[arm])]), (len(joints), 1, 7))
-    return ~evaluate_arms(base, joints[:, None]).collided[:, 0]
-
-
-def _xyzw(q):
-    return np.concatenate([q[..., 1:], q[..., :1]], -1)
-
-
-def _pose_mul(pos_a, quat_a, pos_b, quat_b):
-    pos = pos_a + np.einsum("...ij,...j->...i", np.asarray(quat_to_mat(jnp.asarray(quat_a))), pos_b)
-    return pos, np.asarray(quat_mul(jnp.asarray(quat_a), jnp.asarray(quat_b)))
-
-
-@functools.cache
-def grasp_table(scene: PickPlaceScene) -> dict:
-    """Per arm and object: the spawn pose, the chosen grasp and its pregrasp / grasp
-    configurations; per arm: the dump pose and configuration (numpy, world frame, wxyz).
-    Deterministic.
-
-    A grasp qualifies when its pregrasp and grasp poses have IK solutions within joint limits
-    (the grasp's solution seeds the pregrasp's, so both are on one branch), clear of self and
-    ground collision in the collision model, with the open fingers above the floor. Over the
-    spawn candidates (:func:`spawn_candidates`) the pregrasp configuration nearest to the
-    policy's training distribution wins: the policy was trained on targets reached by
-    position IK pulled toward home (:mod:`mjx_multiarm.tasks.generate`), so the distance to
-    that configuration at the pregrasp position is the score. The dump pose is such a target:
-    the dump position with the orientation that position IK gives.
-    """
-    seeds = _ik_seeds()
-    nobj = len(scene.object_names)
-    table = {k: np.zeros((NUM_ARMS, nobj, *shape)) for k, shape in
-             (("spawn", (7,)), ("reach_joints", (6,)), ("pregrasp_joints", (6,)), ("grasp_joints", (6,)))}
-    table["grasp_index"] = np.zeros((NUM_ARMS, nobj), int)
-    for arm in range(NUM_ARMS):
-        for obj in range(nobj):
-            grasps = scene.assets.objects[scene.object_names[obj]].grasps
-            best = (-np.inf, None)
-            for k, spawn in enumerate(spawn_candidates(scene, arm, obj)):
-                g_pos, g_quat = _pose_mul(spawn[:3], spawn[3:], grasps[:, :3], grasps[:, 3:])
-                approach = np.asarray(quat_to_mat(jnp.asarray(g_quat)))[:, :, 0]  # ee_link x in the world
-                p_pos = g_pos - PREGRASP_BACKOFF * approach
-                q_grasp, ok_g = _ik(arm, g_pos, g_quat, seeds)
-                q_pre, ok_p = _ik(arm, p_pos, g_quat, q_grasp[:, None])
-                ok = ok_g & ok_p & _clear(arm, q_grasp) & _clear(arm, q_pre) & (_finger_bottom(g_pos, g_quat) > 0.005)
-                typical = _typical_joints(arm, p_pos)
-                score = np.where(ok, -np.abs(q_pre - typical).sum(-1) - 1e-3 * k, -np.inf)
-                g = int(np.argmax(score))
-                if score[g] > best[0]:
-                    best = (score[g], (spawn, g, typical[g], q_pre[g], q_grasp[g]))
-            if best[1] is None:
-                raise RuntimeError(f"no feasible grasp for arm {arm}, object {scene.object_names[obj]}")
-            spawn, g, *poses = best[1]
-            table["grasp_index"][arm, obj] = g
-            for key, value in zip(("spawn", "reach_joints", "pregrasp_joints", "grasp_joints"), (spawn, *poses)):
-                table[key][arm, obj] = value
-    reach = forward_kinematics(_arm(), BASE_POS[:, None], BASE_QUAT[:, None], jnp.asarray(table["reach_joints"], jnp.float32))
-    table["reach_pos"], table["reach_quat"] = np.asarray(reach.ee_pos, np.float64), np.asarray(reach.ee_quat, np.float64)
-    dump_joints = np.stack([_typical_joints(arm, DUMP_POSITIONS[arm][None])[0] for arm in range(NUM_ARMS)])
-    frames = forward_kinematics(_arm(), BASE_POS, BASE_QUAT, jnp.asarray(dump_joints, jnp.float32))
-    if np.abs(np.asarray(frames.ee_pos) - DUMP_POSITIONS).max() > 1e-3:
-        raise RuntimeError("no IK solution for a dump position")
-    dump_quat = np.asarray(frames.ee_quat, np.float64)
-    table.update(dump_pos=DUMP_POSITIONS.copy(), dump_quat=dump_quat, dump_joints=dump_joints)
-    return table
-
-
-def _typical_joints(arm: int, pos) -> np.ndarray:
-    """[N, 6] configurations reaching world positions [N, 3] the way training targets were
-    made: position IK from home, pulled toward home."""
-    pos_b, _ = _to_base(arm, pos, np.broadcast_to([1.0, 0.0, 0.0, 0.0], (len(pos), 4)))
-    return np.asarray(_solve_positions(jnp.asarray(pos_b, jnp.float32)), np.float64)
-
-
-@jax.jit
-def _solve_positions(pos):
-    home = jnp.broadcast_to(jnp.asarray(_arm().home, jnp.float32), (*pos.shape[:-1], 6))
-    return solve_positions(_arm(), pos, home, iterations=100)[0]
-
-
-def _finger_bottom(pos, quat) -> np.ndarray:
-    """[N] lowest z of the open fingers' pads for ee_link poses [N, 3], [N, 4]."""
-    from mjx_multiarm.pickplace.scene import PAD_CENTRE_X, PAD_HALF
-
-    rot = np.asarray(quat_to_mat(jnp.asarray(quat)))
-    corners = np.array([[PAD_CENTRE_X + sx * PAD_HALF[0], sy * PAD_HALF[1], sz * (GRIPPER_STROKE / 2 + 2 * PAD_HALF[2])]
-                        for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
-    return (pos[:, None, 2] + np.einsum("nij,kj->nki", rot, corners)[..., 2]).min(axis=1)
-
-
-def sample_initial_joints(rng: np.random.Generator, max_tries: int = 1000) -> np.ndarray:
-    """[4, 6] home + U(-0.4, 0.4) per joint, redrawn until the team is collision-free with
-    every end effector above 0.2 m (the original's rule)."""
-    base = np.broadcast_to(np.concatenate([BASE_POS, _xyzw(BASE_QUAT)], 1), (NUM_ARMS, 7))
-    for _ in range(max_tries):
-        joints = _arm().home + rng.uniform(-INIT_NOISE, INIT_NOISE, (NUM_ARMS, 6))
-        at = evaluate_arms(base, joints)
-        if not at.collided.any() and (at.ee_pos[:, 2] > INIT_MIN_EE_HEIGHT).all():
-            return joints
-    raise RuntimeError(f"no collision-free initial configuration in {max_tries} draws")
-
-
-def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None) -> RunPlan:
-    """``runs`` run plans drawn from ``seed`` (run r uses ``np.random.default_rng([seed, r])``):
-    one object per arm uniformly (or ``objects``: names or indices, [4] for every run), initial
-    configurations as the original."""
-    table = grasp_table(scene)
-    if objects is not None:
-        fixed = np.array([scene.object_index(o) if isinstance(o, str) else int(o) for o in objects])
-        if fixed.shape != (NUM_ARMS,):
-            raise ValueError(f"objects: the layout needs one object per arm ({NUM_ARMS}), got {len(fixed)}")
-    plans = []
-    arms = np.arange(NUM_ARMS)
-    for r in range(runs):
-        rng = np.random.default_rng([seed, r])
-        objs = fixed if objects is not None else rng.integers(len(scene.object_names), size=NUM_ARMS)
-        plans.append(RunPlan(
-            objects=objs.astype(np.int32),
-            init_joints=sample_initial_joints(rng),
-            object_pose=table["spawn"][arms, objs],
-            reach_pos=table["reach_pos"][arms, objs], reach_quat=table["reach_quat"][arms, objs],
-            pregrasp_joints=table["pregrasp_joints"][arms, objs], grasp_joints=table["grasp_joints"][arms, objs],
-            dump_pos=table["dump_pos"], dump_quat=table["dump_quat"], dump_joints=table["dump_joints"]))
-    return jax.tree.map(lambda *xs: np.stack(xs).astype(np.int32 if xs[0].dtype.kind == "i" else np.float32), *plans)

@@ -35,6 +35,8 @@ NUM_ARMS = 4
 #: (x, y, yaw) of each base (the original demo's ``robot_base_poses``), at z = BASE_HEIGHT.
 ARM_BASES = np.array([[0.6, 0.6, 0.0], [0.6, -0.6, 0.0], [-0.6, 0.6, np.pi], [-0.6, -0.6, np.pi]])
 BASE_HEIGHT = 0.01
+BASE_POS = np.concatenate([ARM_BASES[:, :2], np.full((NUM_ARMS, 1), BASE_HEIGHT)], axis=1)
+BASE_QUAT = np.stack([np.cos(ARM_BASES[:, 2] / 2), 0 * ARM_BASES[:, 2], 0 * ARM_BASES[:, 2], np.sin(ARM_BASES[:, 2] / 2)], 1)
 #: Where each arm's object stands (x, y) and where it drops it (ee_link position).
 OBJECT_XY = np.array([[1.0, 0.0], [0.0, -1.0], [0.0, 1.0], [-1.0, 0.0]])
 DUMP_POSITIONS = np.array([[0.2, 0.2, 0.5], [0.2, -0.2, 0.5], [-0.2, 0.2, 0.5], [-0.2, -0.2, 0.5]])
@@ -159,8 +161,8 @@ def _add_gripper(ee: mujoco.MjsBody) -> None:
         finger.mass = 0.05
         finger.inertia = [1e-5, 1e-5, 1e-5]
         finger.explicitinertial = True
-        kw = dict(type=mujoco.mjtGeom.mjGEOM_BOX, contype=ARM_BITS[0], conaffinity=ARM_BITS[1], group=1,
-                  rgba=[0.15, 0.15, 0.15, 1.0], friction=[1.0, 0.005, 0.0001])
+        kw = {"type": mujoco.mjtGeom.mjGEOM_BOX, "contype": ARM_BITS[0], "conaffinity": ARM_BITS[1], "group": 1,
+                  "rgba": [0.15, 0.15, 0.15, 1.0], "friction": [1.0, 0.005, 0.0001]}
         finger.add_geom(name=f"pad_{side}", pos=[PAD_CENTRE_X, 0.0, sign * PAD_HALF[2]], size=PAD_HALF, **kw)
         finger.add_geom(name=f"finger_{side}", pos=[0.10, 0.0, sign * (2 * PAD_HALF[2] + 0.006)],
                         size=[0.035, PAD_HALF[1], 0.006], **kw)
@@ -207,8 +209,8 @@ def build_spec(assets: PickPlaceAssets) -> mujoco.MjSpec:
     for name, obj in assets.objects.items():
         for k, hull in enumerate(obj.hulls):
             spec.add_mesh(name=f"{name}_{k}", uservert=hull.reshape(-1).tolist())
-    for i, (x, y, yaw) in enumerate(ARM_BASES):
-        frame = world.add_frame(pos=[x, y, BASE_HEIGHT], quat=[np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+    for i in range(NUM_ARMS):
+        frame = world.add_frame(pos=BASE_POS[i], quat=BASE_QUAT[i])
         spec.attach(_arm_spec(i), prefix=f"arm{i}/", frame=frame)
         for j, joint in enumerate(load_arm().joint_names):
             spec.add_actuator(name=f"arm{i}/{joint}", target=f"arm{i}/{joint}", trntype=mujoco.mjtTrn.mjTRN_JOINT,

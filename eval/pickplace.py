@@ -1,0 +1,241 @@
+"""The paper's application: four UR5 arms pick objects off the floor into a central bin.
+
+    python -m eval.pickplace --runs 500 --seed 1000 --out results/pickplace --json
+    python -m eval.pickplace --runs 64 --backend mjx --batch 64      # MJX: one jitted batch
+    python -m eval.pickplace --runs 20 --render 2                    # PNG frames (+ MP4) of 2 runs
+
+Every arm runs the protocol of :mod:`mjx_multiarm.pickplace.protocol` with the shared
+reaching policy (default: the shipped one) under MuJoCo physics: MuJoCo C (default; runs in
+lockstep batches spread over ``--workers`` processes) or MJX (``--batch`` runs per jitted
+call). Run r of seed S draws its objects and initial configuration from ``(S, r)``, so a seed
+picks the same runs on either backend.
+
+Outcomes. ``success``: every arm finished its sequence with no collision under the
+original's rule (an arm in a policy phase touching another arm, the floor, the bin or an
+object it does not hold) and every object's x, y lies inside the bin. ``success_rate`` counts
+all runs. ``paper_success_rate`` is the published figure's definition (the original's
+``demo.py``): successes over *valid* runs, where a run is valid if it succeeded, ended in an
+arm-arm or arm-floor collision, or finished its sequences (objects outside the bin included);
+runs ending in a bin or object collision, or a timeout, are discarded. ``strict_success``
+adds the project's stricter accounting (:mod:`~mjx_multiarm.pickplace.protocol`).
+
+Writes ``runs.csv`` (one row per run), ``summary.json`` and ``summary.md`` (beside the
+paper's figures) and, with ``--render N``, ``render/run_<r>/frame_*.png`` and ``run_<r>.mp4``
+(MP4 needs imageio and imageio-ffmpeg). ``--json`` ends the output with one JSON line holding
+``runs``, ``success_rate``, ``paper_success_rate``, ``valid_runs``, ``failures`` (counts by
+cause), ``strict_success_rate``, ``mean_physics_steps_success``, ``runs_per_minute`` and
+``physics_steps_per_second``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import csv
+import dataclasses
+import io
+import json
+import multiprocessing
+import os
+import pathlib
+import sys
+import time
+
+import jax
+import numpy as np
+
+from mjx_multiarm.files import atomic_write
+from mjx_multiarm.pickplace.plans import RunPlan, plan_runs
+from mjx_multiarm.pickplace.protocol import CAUSES, MAX_CONTROL_STEPS
+
+#: The paper's application figures (section "Application"; the original demo's count).
+PAPER = {"runs": 500, "valid_runs": 298, "paper_success_rate": 0.783, "mean_physics_steps_success": 6206}
+#: Causes that keep a failed run valid under the paper's definition.
+VALID_FAILURES = ("arm-arm", "arm-floor", "outside-bin")
+
+
+def _planner(checkpoint: pathlib.Path | None):
+    from eval.benchmark import load_planner
+
+    return load_planner(checkpoint)
+
+
+def _run_mujoco_chunk(checkpoint, plans: RunPlan, max_steps: int) -> list[dict]:
+    """One worker's share: its runs in lockstep on MuJoCo C."""
+    from mjx_multiarm.pickplace.backends import run_mujoco
+    from mjx_multiarm.pickplace.scene import build_scene
+
+    results = run_mujoco(build_scene(), _planner(checkpoint).batched(4), plans, max_steps)
+    return [dataclasses.asdict(r) for r in results]
+
+
+def _chunks(plans: RunPlan, size: int) -> list[tuple[int, RunPlan]]:
+    n = len(plans.objects)
+    return [(start, jax.tree.map(lambda x, s=start: x[s:s + size], plans)) for start in range(0, n, size)]
+
+
+def run_all(plans: RunPlan, backend: str, checkpoint, workers: int, batch: int, max_steps: int) -> list[dict]:
+    """Every run's result dict, in run order."""
+    chunks = _chunks(plans, batch)
+    if backend == "mjx":
+        from mjx_multiarm.pickplace.backends import run_mjx
+        from mjx_multiarm.pickplace.scene import build_scene
+
+        step = _planner(checkpoint).batched(4)
+        return [dataclasses.asdict(r) for _, chunk in chunks for r in run_mjx(build_scene(), step, chunk, max_steps)]
+    if workers <= 1:
+        return [r for _, chunk in chunks for r in _run_mujoco_chunk(checkpoint, chunk, max_steps)]
+    context = multiprocessing.get_context("spawn")  # JAX does not survive fork
+    with concurrent.futures.ProcessPoolExecutor(workers, mp_context=context) as pool:
+        futures = [pool.submit(_run_mujoco_chunk, checkpoint, chunk, max_steps) for _, chunk in chunks]
+        return [r for f in futures for r in f.result()]
+
+
+def summarize(results: list[dict], wall_seconds: float) -> dict:
+    """The run counts and rates of the module docstring."""
+    runs = len(results)
+    success = np.array([r["success"] for r in results], bool)
+    causes = [r["cause"] for r in results]
+    valid = success | np.isin(causes, VALID_FAILURES)
+    steps = np.array([r["physics_steps"] for r in results])
+    return {
+        "runs": runs,
+        "success_rate": float(success.mean()) if runs else 0.0,
+        "paper_success_rate": float(success.sum() / valid.sum()) if valid.any() else 0.0,
+        "valid_runs": int(valid.sum()),
+        "strict_success_rate": float(np.mean([r["strict_success"] for r in results])) if runs else 0.0,
+        "failures": {c: causes.count(c) for c in CAUSES if c != "none" and c in causes},
+        "strict_violations": {c: n for c in CAUSES if c != "none"
+                              and (n := sum(r["strict_cause"] == c for r in results))},
+        "failure_phases": {p: n for p in sorted({r["cause_phase"] for r in results if r["cause_phase"]})
+                           if (n := sum(r["cause_phase"] == p for r in results))},
+        "mean_physics_steps_success": float(steps[success].mean()) if success.any() else None,
+        "mean_simulated_seconds_success": float(steps[success].mean() / 240) if success.any() else None,
+        "wall_seconds": wall_seconds,
+        "runs_per_minute": 60 * runs / wall_seconds if wall_seconds else None,
+        "physics_steps_per_second": float(steps.sum() / wall_seconds) if wall_seconds else None,
+    }
+
+
+def summary_markdown(summary: dict, settings: dict) -> str:
+    rows = [
+        "| | runs | valid runs | success, paper's definition | success, all runs | strict success | physics steps per success |",
+        "|---|---|---|---|---|---|---|",
+        (f"| this run ({settings['backend']}, seed {settings['seed']}) | {summary['runs']} | {summary['valid_runs']} | "
+        f"{summary['paper_success_rate']:.1%} | {summary['success_rate']:.1%} | {summary['strict_success_rate']:.1%} | "
+        f"{summary['mean_physics_steps_success'] or 0:.0f} |"),
+        (f"| paper (Ha et al. 2020) | {PAPER['runs']} | {PAPER['valid_runs']} | {PAPER['paper_success_rate']:.1%} | - | - | "
+        f"{PAPER['mean_physics_steps_success']} |"),
+        "",
+        "| failure cause | runs |",
+        "|---|---|",
+        *[f"| {cause} | {n} |" for cause, n in summary["failures"].items()],
+    ]
+    return "\n".join(rows) + "\n"
+
+
+def _write_runs_csv(path: pathlib.Path, results: list[dict]) -> None:
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(["run", "objects", "success", "cause", "cause_phase", "strict_cause", "phases", "control_steps",
+                     "physics_steps", "seconds"])
+    for r in results:
+        writer.writerow([r["run"], " ".join(r["objects"]), int(r["success"]), r["cause"], r["cause_phase"] or "",
+                         r["strict_cause"], " ".join(r["phases"]), r["control_steps"], r["physics_steps"],
+                         f"{r['seconds']:.3f}"])
+    atomic_write(path, lambda f: f.write(buffer.getvalue().encode()))
+
+
+def render_runs(plans: RunPlan, count: int, checkpoint, out: pathlib.Path, max_steps: int) -> list[pathlib.Path]:
+    """Frames (and an MP4 where imageio is installed) of the first ``count`` runs, on MuJoCo C."""
+    from mjx_multiarm.pickplace.backends import run_mujoco
+    from mjx_multiarm.pickplace.render import RunRecorder
+    from mjx_multiarm.pickplace.scene import build_scene
+    from mjx_multiarm.render import save_frames, save_video
+
+    scene = build_scene()
+    subset = jax.tree.map(lambda x: x[:count], plans)
+    recorder = RunRecorder(scene.model, range(count), subset)
+    run_mujoco(scene, _planner(checkpoint).batched(4), subset, max_steps, on_step=recorder.on_step)
+    recorder.close()
+    written = []
+    for r, frames in recorder.frames.items():
+        frames = np.stack(frames)
+        written += save_frames(frames, out / f"run_{r}")[:1]
+        try:
+            written.append(save_video(frames, out / f"run_{r}.mp4", fps=10))
+        except ImportError as error:
+            print(f"render: {error}", file=sys.stderr)
+    return written
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--runs", type=int, default=500, help="runs (default 500, the paper's)")
+    parser.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco")
+    parser.add_argument("--seed", type=int, default=0, help="picks the runs: run r draws from (seed, r)")
+    parser.add_argument("--objects", help="comma-separated object per arm for every run (default: drawn)")
+    parser.add_argument("--checkpoint", type=pathlib.Path, help="policy file or run directory (default: the shipped policy)")
+    parser.add_argument("--workers", type=int, default=os.cpu_count(), help="MuJoCo C processes (default: one per core)")
+    parser.add_argument("--batch", type=int, default=25, help="runs per lockstep batch (MuJoCo C) or per jitted call (MJX)")
+    parser.add_argument("--max-steps", type=int, default=MAX_CONTROL_STEPS,
+                        help=f"control steps before a timeout (default {MAX_CONTROL_STEPS}: the original's 100,000 physics steps)")
+    parser.add_argument("--out", type=pathlib.Path, help="output directory (default runs/pickplace-<time>)")
+    parser.add_argument("--render", type=int, default=0, metavar="N", help="render the first N runs (MuJoCo C)")
+    parser.add_argument("--json", action="store_true", help="end with one JSON line")
+    args = parser.parse_args(argv)
+    for name in ("runs", "batch", "workers", "max_steps"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be >= 1")
+    if args.render < 0 or args.render > args.runs:
+        parser.error(f"--render must be in [0, --runs], got {args.render}")
+    if args.checkpoint is not None and not args.checkpoint.exists():
+        parser.error(f"--checkpoint {args.checkpoint}: no such policy file or run directory")
+    from mjx_multiarm.pickplace.scene import build_scene
+
+    scene = build_scene()
+    objects = None
+    if args.objects:
+        objects = args.objects.split(",")
+        try:
+            [scene.object_index(o) for o in objects]
+        except ValueError as error:
+            parser.error(f"--objects: {error}")
+        if len(objects) != 4:
+            parser.error(f"--objects: the layout has 4 arms, one object each; got {len(objects)}")
+    out = args.out or pathlib.Path("runs") / f"pickplace-{time.strftime('%Y%m%d-%H%M%S')}"
+    start = time.perf_counter()
+    plans = plan_runs(scene, args.seed, args.runs, objects)
+    planning = time.perf_counter() - start
+    start = time.perf_counter()
+    results = run_all(plans, args.backend, args.checkpoint, args.workers, args.batch, args.max_steps)
+    wall = time.perf_counter() - start
+    for r, result in enumerate(results):
+        result["run"] = r
+        result["objects"] = [scene.object_names[o] for o in np.asarray(plans.objects[r])]
+    summary = summarize(results, wall)
+    settings = {"backend": args.backend, "seed": args.seed, "runs": args.runs, "workers": args.workers,
+                "batch": args.batch, "max_steps": args.max_steps, "checkpoint": str(args.checkpoint or "shipped"),
+                "planning_seconds": planning}
+    _write_runs_csv(out / "runs.csv", results)
+    text = json.dumps({"settings": settings, "summary": summary, "paper": PAPER}, indent=1)
+    atomic_write(out / "summary.json", lambda f: f.write(text.encode()))
+    table = summary_markdown(summary, settings)
+    atomic_write(out / "summary.md", lambda f: f.write(table.encode()))
+    print(table)
+    print(f"{args.runs} runs in {wall:.0f} s ({summary['runs_per_minute']:.1f} runs/min, "
+          f"{summary['physics_steps_per_second']:.0f} physics steps/s; run plans {planning:.0f} s); wrote {out}")
+    if args.render:
+        from mjx_multiarm.render import RenderingUnavailable
+
+        try:
+            for path in render_runs(plans, args.render, args.checkpoint, out / "render", args.max_steps):
+                print(f"render: {path}")
+        except RenderingUnavailable as error:
+            print(f"render: skipped ({error})", file=sys.stderr)
+    if args.json:
+        print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()

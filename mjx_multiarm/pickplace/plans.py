@@ -1,0 +1,247 @@
+"""Run plans of the pick-and-place protocol: draws from a seed, object placements, grasps,
+and the configurations the phases head for.
+
+A run's draws (objects, initial configuration) come from ``np.random.default_rng([seed, run])``.
+Everything else is a deterministic table per arm and object (:func:`grasp_table`): where the
+object stands, which GraspIt grasp the arm uses, the pregrasp / grasp configurations, and the
+policy's targets.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from mjx_multiarm.geometry.evaluate import evaluate_arms
+from mjx_multiarm.geometry.ik import solve_poses, solve_positions
+from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.geometry.transforms import quat_mul, quat_to_mat, wxyz_to_xyzw
+from mjx_multiarm.pickplace.scene import (
+    ARM_BASES,
+    BASE_POS,
+    BASE_QUAT,
+    DUMP_POSITIONS,
+    GRIPPER_STROKE,
+    NUM_ARMS,
+    OBJECT_XY,
+    PAD_CENTRE_X,
+    PAD_HALF,
+    PickPlaceScene,
+)
+
+PREGRASP_BACKOFF = 0.10
+#: Initial configurations: home + U(-0.4, 0.4) rad per joint, collision-free, ee above 0.2 m.
+INIT_NOISE = 0.4
+INIT_MIN_EE_HEIGHT = 0.2
+#: Resting orientations tried besides upright (wxyz): the cube rests on any face.
+RESTING = {"cube": np.array([[1.0, 0.0, 0.0, 0.0], [np.sqrt(0.5), np.sqrt(0.5), 0.0, 0.0],
+                             [np.sqrt(0.5), -np.sqrt(0.5), 0.0, 0.0], [np.sqrt(0.5), 0.0, np.sqrt(0.5), 0.0],
+                             [np.sqrt(0.5), 0.0, -np.sqrt(0.5), 0.0], [0.0, 1.0, 0.0, 0.0]])}
+#: Yaws tried, about the direction from the object to its arm's base.
+SPAWN_YAWS = np.pi / 2 * np.arange(4)
+IK_ITERATIONS = 150
+ROWS = 4096  # IK and collision calls are padded to a multiple of this (one compilation)
+
+
+@struct.dataclass
+class RunPlan:
+    """One run's draws and the poses its phases head for (world frame, wxyz); leading batch
+    dims allowed."""
+
+    objects: jnp.ndarray  # [4] object index per arm
+    init_joints: jnp.ndarray  # [4, 6]
+    object_pose: jnp.ndarray  # [4, 7] spawn pose (position, wxyz)
+    reach_pos: jnp.ndarray  # [4, 3] the policy's target in reach_pregrasp: the pregrasp position ...
+    reach_quat: jnp.ndarray  # [4, 4] ... with the orientation of a training target there
+    pregrasp_joints: jnp.ndarray  # [4, 6] the exact pregrasp (to_pregrasp's goal)
+    grasp_joints: jnp.ndarray  # [4, 6]
+    dump_pos: jnp.ndarray  # [4, 3]
+    dump_quat: jnp.ndarray  # [4, 4]
+    dump_joints: jnp.ndarray  # [4, 6]
+
+
+def spawn_candidates(scene: PickPlaceScene, arm: int, obj: int) -> np.ndarray:
+    """[K, 7] poses arm ``arm``'s object ``obj`` may stand in (position, wxyz): on the floor
+    1 m from the centre in front of the arm, upright (or resting on a face, for the cube),
+    turned about the vertical by :data:`SPAWN_YAWS` from facing the arm's base."""
+    xy = OBJECT_XY[arm]
+    facing = np.arctan2(*(ARM_BASES[arm, 1::-1] - xy[::-1]))
+    asset = scene.assets.objects[scene.object_names[obj]]
+    points = np.concatenate(asset.hulls)
+    poses = []
+    for rest in RESTING.get(asset.name, np.array([[1.0, 0.0, 0.0, 0.0]])):
+        for yaw in facing + SPAWN_YAWS:
+            quat = np.asarray(quat_mul(jnp.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]), jnp.asarray(rest)))
+            bottom = (points @ np.asarray(quat_to_mat(jnp.asarray(quat))).T)[:, 2].min()
+            poses.append([*xy, -bottom + 1e-3, *quat])
+    return np.array(poses)
+
+
+def _padded(fn, *arrays):
+    """``fn`` on ``arrays`` padded (first rows repeated) to a multiple of :data:`ROWS` rows."""
+    n = len(arrays[0])
+    rows = -(-n // ROWS) * ROWS
+    padded = [np.concatenate([a, np.repeat(a[:1], rows - n, axis=0)]) if rows > n else a for a in arrays]
+    return [np.asarray(x)[:n] for x in fn(*padded)]
+
+
+def _to_base(arms: np.ndarray, pos: np.ndarray, quat: np.ndarray):
+    """World poses [N, 3], [N, 4] -> the base frames of ``arms`` [N] (wxyz)."""
+    yaw = ARM_BASES[arms, 2]
+    c, s = np.cos(yaw), np.sin(yaw)
+    rel = pos - BASE_POS[arms]
+    pos_b = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], rel[:, 2]], -1)
+    quat_b = np.asarray(quat_mul(jnp.asarray(BASE_QUAT[arms] * [1, -1, -1, -1]), jnp.asarray(quat)))
+    return pos_b, quat_b
+
+
+@jax.jit
+def _solve(pos, quat, seeds):
+    joints, position_error, angle_error = solve_poses(load_arm(), pos, quat, seeds, iterations=IK_ITERATIONS)
+    return joints, (position_error < 1e-3) & (angle_error < 1e-2) & jnp.all(jnp.abs(joints) <= 2 * np.pi, axis=-1)
+
+
+@jax.jit
+def _solve_positions(pos):
+    home = jnp.broadcast_to(jnp.asarray(load_arm().home, jnp.float32), (*pos.shape[:-1], 6))
+    return (solve_positions(load_arm(), pos, home, iterations=100)[0],)
+
+
+def typical_joints(arms: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """[N, 6] configurations reaching world positions [N, 3] the way training targets are made
+    (:mod:`mjx_multiarm.tasks.generate`: position IK from home, pulled toward home)."""
+    pos_b, _ = _to_base(arms, pos, np.broadcast_to([1.0, 0.0, 0.0, 0.0], (len(pos), 4)))
+    return _padded(_solve_positions, pos_b.astype(np.float32))[0].astype(np.float64)
+
+
+def _ik(arms, pos, quat, seeds: np.ndarray):
+    """IK of world poses [N] from seeds [N, S, 6]: (joints [N, 6], ok [N]), the solved seed
+    nearest its own start winning (so a seed picks its branch)."""
+    pos_b, quat_b = _to_base(arms, pos, quat)
+    n, s = seeds.shape[:2]
+    joints, ok = _padded(_solve, np.repeat(pos_b, s, 0).astype(np.float32), np.repeat(quat_b, s, 0).astype(np.float32),
+                         seeds.reshape(n * s, 6).astype(np.float32))
+    joints, ok = joints.reshape(n, s, 6), ok.reshape(n, s)
+    cost = np.where(ok, np.abs(joints - seeds).sum(-1), np.inf)
+    best = cost.argmin(axis=1)
+    return joints[np.arange(n), best].astype(np.float64), ok[np.arange(n), best]
+
+
+def _clear(arms: np.ndarray, joints: np.ndarray) -> np.ndarray:
+    """[N] each arm alone at ``joints`` touches neither itself nor the ground."""
+    base = np.concatenate([BASE_POS[arms], np.asarray(wxyz_to_xyzw(BASE_QUAT[arms]))], 1)[:, None]
+    return ~_padded(lambda b, q: (evaluate_arms(b, q).collided,), base, joints[:, None])[0][:, 0]
+
+
+def _finger_bottom(pos, quat) -> np.ndarray:
+    """[N] lowest z of the open fingers' pads for ee_link poses [N, 3], [N, 4]."""
+    rot = np.asarray(quat_to_mat(jnp.asarray(quat)))
+    corners = np.array([[PAD_CENTRE_X + sx * PAD_HALF[0], sy * PAD_HALF[1], sz * (GRIPPER_STROKE / 2 + 2 * PAD_HALF[2])]
+                        for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    return (pos[:, None, 2] + np.einsum("nij,kj->nki", rot, corners)[..., 2]).min(axis=1)
+
+
+def _pose_mul(pos_a, quat_a, pos_b, quat_b):
+    pos = pos_a + np.einsum("...ij,...j->...i", np.asarray(quat_to_mat(jnp.asarray(quat_a))), pos_b)
+    return pos, np.asarray(quat_mul(jnp.asarray(quat_a), jnp.asarray(quat_b)))
+
+
+@functools.cache
+def grasp_table(scene: PickPlaceScene) -> dict:
+    """Per arm and object: the spawn pose, the chosen grasp and its configurations, and the
+    policy's reach target; per arm: the dump pose and configuration (numpy, world, wxyz).
+
+    A grasp qualifies when its pregrasp and grasp poses have IK solutions within joint limits
+    (the grasp's solution seeds the pregrasp's, so both are on one branch), clear of self and
+    ground collision in the collision model, with the open fingers above the floor. Over the
+    spawn candidates (:func:`spawn_candidates`) the grasp whose pregrasp configuration is
+    nearest (summed joint distance) to the policy's reach configuration wins: the
+    configuration of a training target at the pregrasp position (:func:`typical_joints`),
+    whose pose is the policy's target. The dump pose is such a target too: the dump position
+    with the orientation position IK gives.
+    """
+    nobj = len(scene.object_names)
+    rows = {k: [] for k in ("arm", "obj", "cand", "grasp", "spawn", "pos", "quat")}
+    for arm in range(NUM_ARMS):
+        for obj in range(nobj):
+            grasps = scene.assets.objects[scene.object_names[obj]].grasps
+            for k, spawn in enumerate(spawn_candidates(scene, arm, obj)):
+                pos, quat = _pose_mul(spawn[:3], spawn[3:], grasps[:, :3], grasps[:, 3:])
+                n = len(grasps)
+                for key, value in (("arm", [arm] * n), ("obj", [obj] * n), ("cand", [k] * n), ("grasp", range(n)),
+                                   ("spawn", [spawn] * n), ("pos", pos), ("quat", quat)):
+                    rows[key].append(np.asarray(value))
+    r = {k: np.concatenate(v) for k, v in rows.items()}
+    approach = np.asarray(quat_to_mat(jnp.asarray(r["quat"])))[:, :, 0]  # ee_link x in the world
+    pregrasp_pos = r["pos"] - PREGRASP_BACKOFF * approach
+    typical = typical_joints(r["arm"], pregrasp_pos)
+    home = np.broadcast_to(load_arm().home, typical.shape)
+    flips = [typical + [0, 0, 0, 0, 0, turn] for turn in (np.pi / 2, -np.pi / 2)]
+    q_grasp, ok_grasp = _ik(r["arm"], r["pos"], r["quat"], np.stack([typical, home, *flips], axis=1))
+    q_pre, ok_pre = _ik(r["arm"], pregrasp_pos, r["quat"], q_grasp[:, None])
+    ok = (ok_grasp & ok_pre & _clear(r["arm"], q_grasp) & _clear(r["arm"], q_pre)
+          & (_finger_bottom(r["pos"], r["quat"]) > 0.005))
+    score = np.where(ok, -np.abs(q_pre - typical).sum(-1) - 1e-3 * r["cand"], -np.inf)
+    table = {k: np.zeros((NUM_ARMS, nobj, *shape)) for k, shape in
+             (("spawn", (7,)), ("reach_joints", (6,)), ("pregrasp_joints", (6,)), ("grasp_joints", (6,)))}
+    table["grasp_index"] = np.zeros((NUM_ARMS, nobj), int)
+    for arm in range(NUM_ARMS):
+        for obj in range(nobj):
+            mine = np.flatnonzero((r["arm"] == arm) & (r["obj"] == obj))
+            best = mine[np.argmax(score[mine])]
+            if not np.isfinite(score[best]):
+                raise RuntimeError(f"no feasible grasp for arm {arm}, object {scene.object_names[obj]}")
+            table["grasp_index"][arm, obj] = r["grasp"][best]
+            for key, value in (("spawn", r["spawn"]), ("reach_joints", typical), ("pregrasp_joints", q_pre),
+                               ("grasp_joints", q_grasp)):
+                table[key][arm, obj] = value[best]
+    reach = forward_kinematics(load_arm(), BASE_POS[:, None], BASE_QUAT[:, None], jnp.asarray(table["reach_joints"]))
+    table["reach_pos"], table["reach_quat"] = np.asarray(reach.ee_pos, np.float64), np.asarray(reach.ee_quat, np.float64)
+    dump_joints = typical_joints(np.arange(NUM_ARMS), DUMP_POSITIONS)
+    dump = forward_kinematics(load_arm(), BASE_POS, BASE_QUAT, jnp.asarray(dump_joints))
+    if np.abs(np.asarray(dump.ee_pos) - DUMP_POSITIONS).max() > 1e-3:
+        raise RuntimeError("no IK solution for a dump position")
+    table.update(dump_pos=DUMP_POSITIONS.copy(), dump_quat=np.asarray(dump.ee_quat, np.float64), dump_joints=dump_joints)
+    return table
+
+
+def sample_initial_joints(rng: np.random.Generator, max_tries: int = 1000) -> np.ndarray:
+    """[4, 6] home + U(-0.4, 0.4) per joint, redrawn until the team is collision-free with
+    every end effector above 0.2 m (the original's rule)."""
+    base = np.concatenate([BASE_POS, np.asarray(wxyz_to_xyzw(BASE_QUAT))], 1)
+    for _ in range(max_tries):
+        joints = load_arm().home + rng.uniform(-INIT_NOISE, INIT_NOISE, (NUM_ARMS, 6))
+        at = evaluate_arms(base, joints)
+        if not at.collided.any() and (at.ee_pos[:, 2] > INIT_MIN_EE_HEIGHT).all():
+            return joints
+    raise RuntimeError(f"no collision-free initial configuration in {max_tries} draws")
+
+
+def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None) -> RunPlan:
+    """``runs`` run plans drawn from ``seed`` (run r uses ``np.random.default_rng([seed, r])``):
+    one object per arm uniformly (or ``objects``: names or indices, one per arm, for every
+    run), initial configurations as the original."""
+    if runs < 1:
+        raise ValueError(f"runs must be >= 1, got {runs}")
+    table = grasp_table(scene)
+    fixed = None
+    if objects is not None:
+        if len(objects) != NUM_ARMS:
+            raise ValueError(f"objects: the layout needs one object per arm ({NUM_ARMS}), got {len(objects)}")
+        fixed = np.array([scene.object_index(o) if isinstance(o, str) else int(o) for o in objects])
+    plans = []
+    arms = np.arange(NUM_ARMS)
+    for r in range(runs):
+        rng = np.random.default_rng([seed, r])
+        objs = fixed if fixed is not None else rng.integers(len(scene.object_names), size=NUM_ARMS)
+        plans.append(RunPlan(
+            objects=objs.astype(np.int32), init_joints=sample_initial_joints(rng), object_pose=table["spawn"][arms, objs],
+            reach_pos=table["reach_pos"][arms, objs], reach_quat=table["reach_quat"][arms, objs],
+            pregrasp_joints=table["pregrasp_joints"][arms, objs], grasp_joints=table["grasp_joints"][arms, objs],
+            dump_pos=table["dump_pos"], dump_quat=table["dump_quat"], dump_joints=table["dump_joints"]))
+    return jax.tree.map(lambda *xs: np.stack(xs).astype(np.int32 if xs[0].dtype.kind == "i" else np.float32), *plans)
