@@ -99,7 +99,7 @@ def _sense_mujoco(scene: PickPlaceScene, d: mujoco.MjData, contacts: np.ndarray)
     n = d.ncon
     if n:
         c = d.contact
-        contacts |= arm_contacts(scene, None, c.geom1[:n], c.geom2[:n], c.dist[:n], xp=np)
+        contacts |= arm_contacts(scene, c.geom1[:n], c.geom2[:n], c.dist[:n], xp=np)
     return contacts
 
 
@@ -219,7 +219,7 @@ def _mjx_functions(scene: PickPlaceScene, policy_step, chunk: int, max_steps: in
 
 def _contacts_mjx(scene: PickPlaceScene, d) -> jnp.ndarray:
     c = d._impl.contact
-    return arm_contacts(scene, None, c.geom[:, 0], c.geom[:, 1], c.dist, xp=jnp)
+    return arm_contacts(scene, c.geom[:, 0], c.geom[:, 1], c.dist, xp=jnp)
 
 
 def _sense_mjx(scene: PickPlaceScene, d, touched) -> Sensors:

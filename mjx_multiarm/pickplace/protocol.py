@@ -150,8 +150,8 @@ def _move_steps(start, goal):
     return jnp.maximum(SCRIPTED_STEPS, jnp.ceil(jnp.max(jnp.abs(goal - start) / speed, axis=-1))).astype(jnp.int32)
 
 
-def _lifted(joints, dz: float):
-    """Joint angles that move each arm's ee_link by ``dz`` vertically, orientation kept."""
+def lifted_joints(joints, dz: float):
+    """[4, 6] joint angles that move each arm's ee_link by ``dz`` vertically, orientation kept."""
     frames = forward_kinematics(load_arm(), jnp.zeros(3), jnp.array([1.0, 0.0, 0.0, 0.0]), joints)
     return solve_poses(load_arm(), frames.ee_pos + jnp.array([0.0, 0.0, dz]), frames.ee_quat, joints, iterations=40)[0]
 
@@ -207,8 +207,8 @@ def make_controller(policy_step, scene: PickPlaceScene, max_steps: int = MAX_CON
         phase = jnp.where(done, phase + 1, phase)
         goal = jnp.select(
             [(phase == p)[:, None] for p in (TO_PREGRASP, TO_GRASP, LIFT, TO_DUMP, LOWER, RAISE, HOME)],
-            [plan.pregrasp_joints, plan.grasp_joints, _lifted(joints, LIFT_HEIGHT), plan.dump_joints,
-             _lifted(joints, -DUMP_DROP), _lifted(joints, DUMP_DROP), jnp.broadcast_to(home, joints.shape)],
+            [plan.pregrasp_joints, plan.grasp_joints, lifted_joints(joints, LIFT_HEIGHT), plan.dump_joints,
+             lifted_joints(joints, -DUMP_DROP), lifted_joints(joints, DUMP_DROP), jnp.broadcast_to(home, joints.shape)],
             joints)
         goal = jnp.where(done[:, None], goal, state.goal)
         start = jnp.where(done[:, None], joints, state.start)
@@ -262,12 +262,10 @@ def make_controller(policy_step, scene: PickPlaceScene, max_steps: int = MAX_CON
     return control
 
 
-def arm_contacts(scene: PickPlaceScene, objects, geom1, geom2, dist, xp=np):
+def arm_contacts(scene: PickPlaceScene, geom1, geom2, dist, xp=np):
     """[4, 4] bool per arm: touching the floor / the bin / its own object / another object,
     from a contact list (``geom1``, ``geom2``, ``dist``; ``dist < 0`` is a touch). ``xp`` is
-    numpy (MuJoCo C) or jax.numpy (MJX). ``objects`` is unused by the classification (the
-    slot decides whose object it is) and kept for the backends' symmetry."""
-    del objects
+    numpy (MuJoCo C) or jax.numpy (MJX)."""
     kind = xp.asarray(scene.geom_kind)
     slot = xp.asarray(scene.geom_slot)
     touching = dist < 0

@@ -1,0 +1,182 @@
+"""The pick-and-place application: assets, scene, grasping under physics, protocol, CLI."""
+
+from __future__ import annotations
+
+import copy
+import json
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from mjx_multiarm.geometry.ik import solve_poses
+from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.pickplace import backends, plans, protocol
+from mjx_multiarm.pickplace.scene import (
+    ASSETS,
+    GRIPPER_STROKE,
+    NUM_ARMS,
+    PARKED_OFFSET,
+    build_scene,
+)
+from mjx_multiarm.planner.policy import Planner
+
+PICKPLACE_REFERENCE = pathlib.Path(__file__).resolve().parents[2] / "shared" / "reference" / "pickplace"
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return build_scene()
+
+
+def test_scene_compiles_with_every_object_in_every_slot(scene):
+    m = scene.model
+    assert m.nu == NUM_ARMS * 8 and m.neq == NUM_ARMS  # 6 joint servos + 2 fingers per arm; one grasp weld each
+    assert not m.eq_active0.any()
+    assert set(scene.piece_geoms) == set(scene.object_names) and len(scene.object_names) == 6
+    pos = scene.geom_pos(["cube", "sugar_box", "power_drill", "bleach_cleanser"])
+    for name, geoms in scene.piece_geoms.items():
+        for slot, chosen in enumerate(["cube", "sugar_box", "power_drill", "bleach_cleanser"]):
+            moved = pos[geoms[slot]] - m.geom_pos[geoms[slot]]
+            np.testing.assert_allclose(moved, 0 if name == chosen else np.broadcast_to(PARKED_OFFSET, moved.shape))
+    assert (scene.geom_kind >= 0).all()
+
+
+def test_bad_object_draws_are_named(scene):
+    with pytest.raises(ValueError, match="unknown object 'anvil'"):
+        scene.geom_pos(["cube", "anvil", "cube", "cube"])
+    with pytest.raises(ValueError, match="one object per arm"):
+        scene.geom_pos(["cube"] * 3)
+    with pytest.raises(ValueError, match="one object per arm"):
+        plans.plan_runs(scene, 0, 1, objects=["cube"] * 5)
+
+
+def test_derived_assets_are_the_derivation_of_the_reference():
+    """The committed assets are what the project's script makes of ../shared/reference."""
+    pytest.importorskip("trimesh")
+    if not PICKPLACE_REFERENCE.is_dir():
+        pytest.skip(f"reference data not found at {PICKPLACE_REFERENCE}")
+    from mjx_multiarm.pickplace.derive import derive
+
+    fresh = json.loads(json.dumps(derive(PICKPLACE_REFERENCE)))
+    committed = json.loads(ASSETS.read_text())
+    assert fresh["bin"]["boxes"] == committed["bin"]["boxes"]
+    for name, obj in committed["objects"].items():
+        assert fresh["objects"][name]["hulls"] == obj["hulls"]
+        assert fresh["objects"][name]["grasps"] == obj["grasps"]
+
+
+def test_pose_ik_reaches_reachable_poses():
+    arm = load_arm()
+    rng = np.random.default_rng(0)
+    joints = arm.home + rng.uniform(-1.0, 1.0, (64, 6))
+    frames = forward_kinematics(arm, jnp.zeros(3), jnp.array([1.0, 0.0, 0.0, 0.0]), jnp.asarray(joints, jnp.float32))
+    start = jnp.asarray(joints + rng.uniform(-0.4, 0.4, joints.shape), jnp.float32)
+    _, position_error, angle_error = jax.jit(lambda p, q, s: solve_poses(arm, p, q, s))(frames.ee_pos, frames.ee_quat, start)
+    assert float(jnp.max(position_error)) < 1e-3 and float(jnp.max(angle_error)) < 1e-2
+
+
+def test_scripted_grasp_lifts_and_holds_every_object(scene):
+    """Each arm at its grasp configuration closes the gripper, welds its object and lifts it
+    0.3 m under MuJoCo physics; the object follows and stays where it was held."""
+    table = plans.grasp_table(scene)
+    for obj in range(len(scene.object_names)):
+        m = copy.deepcopy(scene.model)
+        m.geom_pos[:] = scene.geom_pos([obj] * NUM_ARMS)
+        d = mujoco.MjData(m)
+        grasp = table["grasp_joints"][:, obj]
+        for a in range(NUM_ARMS):
+            d.qpos[scene.arm_qpos[a]] = d.ctrl[scene.arm_actuators[a]] = grasp[a]
+            d.qpos[scene.object_qpos[a]:scene.object_qpos[a] + 7] = table["spawn"][a, obj]
+        mujoco.mj_forward(m, d)
+        for _ in range(120):  # settle, gripper open
+            mujoco.mj_step(m, d)
+        d.ctrl[scene.finger_actuators] = GRIPPER_STROKE / 2
+        for _ in range(120):
+            mujoco.mj_step(m, d)
+        start = d.xpos[scene.object_body].copy()
+        for a in range(NUM_ARMS):
+            pos, quat = protocol.relative_pose(d.xpos[scene.ee_body[a]], d.xquat[scene.ee_body[a]],
+                                               d.xpos[scene.object_body[a]], d.xquat[scene.object_body[a]])
+            m.eq_data[scene.welds[a], 3:10] = np.concatenate([pos, quat])
+            d.eq_active[scene.welds[a]] = 1
+        held = [np.concatenate(protocol.relative_pose(d.xpos[scene.ee_body[a]], d.xquat[scene.ee_body[a]],
+                                                      d.xpos[scene.object_body[a]], d.xquat[scene.object_body[a]]))
+                for a in range(NUM_ARMS)]
+        lifted = np.asarray(protocol.lifted_joints(jnp.asarray(grasp, jnp.float32), 0.3))
+        for k in range(240):  # 1 s up, then 0.5 s holding
+            d.ctrl[scene.arm_actuators] = grasp + (lifted - grasp) * min(1.0, (k + 1) / 120)
+            mujoco.mj_step(m, d)
+        rise = d.xpos[scene.object_body][:, 2] - start[:, 2]
+        name = scene.object_names[obj]
+        assert np.all(rise > 0.27), f"{name}: rose {rise}"
+        for a in range(NUM_ARMS):
+            now = np.concatenate(protocol.relative_pose(d.xpos[scene.ee_body[a]], d.xquat[scene.ee_body[a]],
+                                                        d.xpos[scene.object_body[a]], d.xquat[scene.object_body[a]]))
+            assert np.abs(now[:3] - held[a][:3]).max() < 0.005, f"{name}, arm {a}: slipped"
+
+
+def test_arm_contacts_classify_touches(scene):
+    m = scene.model
+    arm0 = m.geom("arm0/ee_link_0").id
+    arm1 = m.geom("arm1/pad_left").id
+    floor, own, other = m.geom("floor").id, m.geom("object0/cube_0").id, m.geom("object2/cube_0").id
+    bin_wall = m.geom("bin_wall_+x").id
+    geom1 = np.array([arm0, own, arm0, arm1, floor])
+    geom2 = np.array([own, arm1, other, bin_wall, arm1])
+    dist = np.array([-0.001, -0.002, 0.01, -0.001, -0.003])  # the third is no touch
+    flags = protocol.arm_contacts(scene, geom1, geom2, dist)
+    expected = np.zeros((4, 4), bool)
+    expected[0, protocol.TOUCH_OWN_OBJECT] = True
+    expected[1, protocol.TOUCH_OTHER_OBJECT] = True  # arm 1 touched object 0
+    expected[1, protocol.TOUCH_BIN] = True
+    expected[1, protocol.TOUCH_FLOOR] = True
+    np.testing.assert_array_equal(flags, expected)
+    np.testing.assert_array_equal(np.asarray(protocol.arm_contacts(scene, jnp.asarray(geom1), jnp.asarray(geom2),
+                                                                   jnp.asarray(dist), xp=jnp)), expected)
+
+
+def test_a_full_run_on_mujoco_puts_every_object_in_the_bin(scene):
+    run = jax.tree.map(lambda x: x[1:2], plans.plan_runs(scene, 1000, 2))  # run 1 of seed 1000
+    [result] = backends.run_mujoco(scene, Planner.load().batched(4), run, max_control_steps=600)
+    assert result.success and result.cause == "none" and result.strict_success, result
+    assert result.phases == ["done"] * NUM_ARMS
+    assert all(abs(x) < 0.34 and abs(y) < 0.37 for x, y, _ in result.object_pos)
+    assert 0 < result.control_steps < 600
+
+
+def test_timeouts_and_collisions_end_runs(scene):
+    """A step limit too short to finish ends the run as a timeout; run 0 of seed 1000 starts
+    with arm 1's gripper beside its object and ends in an arm-object collision while reaching."""
+    two = plans.plan_runs(scene, 1000, 2)
+    results = backends.run_mujoco(scene, Planner.load().batched(4), two, max_control_steps=20)
+    assert results[0].cause == "arm-object" and results[0].cause_phase == "reach_pregrasp" and not results[0].success
+    assert results[1].cause == "timeout" and results[1].control_steps == 20
+
+
+@pytest.mark.slow
+def test_mjx_backend_agrees_with_mujoco(scene):
+    """The same two runs on both backends: the same outcomes, objects within 5 mm."""
+    two = plans.plan_runs(scene, 1000, 2)
+    step = Planner.load().batched(4)
+    c = backends.run_mujoco(scene, step, two, max_control_steps=40)
+    x = backends.run_mjx(scene, step, two, max_control_steps=40, chunk=20)
+    for a, b in zip(c, x):
+        assert (a.cause, a.cause_phase, a.phases, a.control_steps) == (b.cause, b.cause_phase, b.phases, b.control_steps)
+        np.testing.assert_allclose(a.object_pos, b.object_pos, atol=5e-3)
+
+
+def test_cli_rejects_bad_input(tmp_path, capsys):
+    from eval import pickplace
+
+    for argv, message in ((["--objects", "cube,anvil,cube,cube"], "unknown object 'anvil'"),
+                          (["--objects", "cube,cube,cube"], "4 arms"),
+                          (["--checkpoint", str(tmp_path / "none.npz")], "no such policy file"),
+                          (["--runs", "0"], "--runs must be >= 1")):
+        with pytest.raises(SystemExit):
+            pickplace.main([*argv, "--out", str(tmp_path)])
+        assert message in capsys.readouterr().err
