@@ -3,7 +3,8 @@ process) and MJX (runs batched under ``jit``/``vmap``). Both drive the same cont
 (:func:`mjx_multiarm.pickplace.protocol.make_controller`) with the same scene and plans.
 
 A run starts with every arm at its initial configuration and the objects placed, then
-settles for :data:`SETTLE_STEPS` physics steps with the arms held; each control step then
+settles for :data:`SETTLE_STEPS` physics steps with the arms held, on MuJoCo C for both
+backends (MJX takes over the settled states: the same start); each control step then
 applies the controller's commands over :data:`~mjx_multiarm.pickplace.protocol.SUBSTEPS`
 physics steps (servo targets interpolated linearly) and reports the joints, the objects'
 positions and every arm's contacts during the step.
@@ -103,24 +104,31 @@ def _sense_mujoco(scene: PickPlaceScene, d: mujoco.MjData, contacts: np.ndarray)
     return contacts
 
 
-def run_mujoco(scene: PickPlaceScene, policy_step, plans: RunPlan, max_control_steps: int = MAX_CONTROL_STEPS,
-               on_step=None) -> list[RunResult]:
-    """Run every plan of ``plans`` (leading dim = runs) on MuJoCo C, in lockstep.
-
-    ``on_step(step, datas, state)`` is called after every control step (rendering). Each run has its
-    own model copy (its object selection and weld poses).
-    """
-    runs = len(plans.objects)
+def _settled(scene: PickPlaceScene, plans: RunPlan) -> tuple[list, list]:
+    """Each run's model copy (its object selection; later its weld poses) and its data after
+    the settling steps, on MuJoCo C: both backends start every run from this state."""
     plans_np = jax.tree.map(np.asarray, plans)
-    start = time.perf_counter()
     models, datas = [], []
-    for r in range(runs):
+    for r in range(len(plans_np.objects)):
         m = copy.deepcopy(scene.model)
         m.geom_pos[:] = scene.geom_pos(plans_np.objects[r])
         d = mujoco.MjData(m)
         _reset_mujoco(scene, m, d, jax.tree.map(lambda x, r=r: x[r], plans_np))
         models.append(m)
         datas.append(d)
+    return models, datas
+
+
+def run_mujoco(scene: PickPlaceScene, policy_step, plans: RunPlan, max_control_steps: int = MAX_CONTROL_STEPS,
+               on_step=None) -> list[RunResult]:
+    """Run every plan of ``plans`` (leading dim = runs) on MuJoCo C, in lockstep.
+
+    ``on_step(step, datas, state)`` is called after every control step (rendering). Each run
+    has its own model copy (its object selection and weld poses).
+    """
+    runs = len(plans.objects)
+    start = time.perf_counter()
+    models, datas = _settled(scene, plans)
     control = _controller(scene, policy_step, max_control_steps)
     state = jax.vmap(initial_state)(plans)
     sensors = _sensors_mujoco(scene, datas, np.zeros((runs, NUM_ARMS, 4), bool))
@@ -163,8 +171,8 @@ def _sensors_mujoco(scene: PickPlaceScene, datas, touched: np.ndarray) -> Sensor
 # MJX
 
 
-def _mjx_functions(scene: PickPlaceScene, policy_step, chunk: int, max_steps: int):
-    """Jitted (reset, advance ``chunk`` control steps) for batches of runs."""
+def _mjx_advance(scene: PickPlaceScene, policy_step, chunk: int, max_steps: int):
+    """The jitted step of a batch of runs: ``chunk`` control steps."""
     model = mjx.put_model(scene.model)
     control = make_controller(policy_step, scene, max_steps)
     arm_act = jnp.asarray(scene.arm_actuators)
@@ -173,19 +181,6 @@ def _mjx_functions(scene: PickPlaceScene, policy_step, chunk: int, max_steps: in
 
     def physics(geom_pos, eq_data):
         return model.tree_replace({"geom_pos": geom_pos, "eq_data": eq_data})
-
-    def reset(plan: RunPlan, geom_pos):
-        m = physics(geom_pos, model.eq_data)
-        d = mjx.make_data(m)
-        qpos = d.qpos
-        ctrl = d.ctrl
-        for a in range(NUM_ARMS):
-            qpos = qpos.at[scene.arm_qpos[a]].set(plan.init_joints[a])
-            qpos = qpos.at[scene.object_qpos[a]:scene.object_qpos[a] + 7].set(plan.object_pose[a])
-            ctrl = ctrl.at[scene.arm_actuators[a]].set(plan.init_joints[a])
-        d = mjx.forward(m, d.replace(qpos=qpos, ctrl=ctrl))
-        d = jax.lax.fori_loop(0, SETTLE_STEPS, lambda _, d: mjx.step(m, d), d)
-        return d, _sense_mjx(scene, d, jnp.zeros((NUM_ARMS, 4), bool))
 
     def one_step(plan, geom_pos, eq_data, d, state, sensors):
         previous = state.command
@@ -214,7 +209,7 @@ def _mjx_functions(scene: PickPlaceScene, policy_step, chunk: int, max_steps: in
             return one_step(plan, geom_pos, *carry)
         return jax.lax.fori_loop(0, chunk, body, (eq_data, d, state, sensors))
 
-    return jax.jit(jax.vmap(reset)), jax.jit(jax.vmap(advance)), model
+    return jax.jit(jax.vmap(advance))
 
 
 def _contacts_mjx(scene: PickPlaceScene, d) -> jnp.ndarray:
@@ -229,14 +224,17 @@ def _sense_mjx(scene: PickPlaceScene, d, touched) -> Sensors:
 
 def run_mjx(scene: PickPlaceScene, policy_step, plans: RunPlan, max_control_steps: int = MAX_CONTROL_STEPS,
             chunk: int = 20) -> list[RunResult]:
-    """Run every plan of ``plans`` (leading dim = runs) as one MJX batch; the host checks
-    between chunks of ``chunk`` control steps whether every run has ended."""
+    """Run every plan of ``plans`` (leading dim = runs) as one MJX batch from the settled
+    MuJoCo C states; the host checks between chunks of ``chunk`` control steps whether every
+    run has ended."""
     runs = len(plans.objects)
     start = time.perf_counter()
-    reset, advance, model = _mjx_functions(scene, policy_step, chunk, max_control_steps)
-    geom_pos = jnp.asarray(np.stack([scene.geom_pos(np.asarray(o)) for o in plans.objects]), model.geom_pos.dtype)
-    eq_data = jnp.broadcast_to(model.eq_data, (runs, *model.eq_data.shape))
-    d, sensors = reset(plans, geom_pos)
+    models, datas = _settled(scene, plans)
+    advance = _mjx_advance(scene, policy_step, chunk, max_control_steps)
+    d = jax.tree.map(lambda *xs: jnp.stack(xs), *[mjx.put_data(m, d) for m, d in zip(models, datas)])
+    geom_pos = jnp.asarray(np.stack([m.geom_pos for m in models]), d.qpos.dtype)
+    eq_data = jnp.asarray(np.stack([m.eq_data for m in models]), d.qpos.dtype)
+    sensors = _sensors_mujoco(scene, datas, np.zeros((runs, NUM_ARMS, 4), bool))
     state = jax.vmap(initial_state)(plans)
     while not bool(np.asarray(state.ended).all()):  # the controller ends every run by max_control_steps
         eq_data, d, state, sensors = advance(plans, geom_pos, eq_data, d, state, sensors)
