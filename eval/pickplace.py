@@ -45,7 +45,7 @@ import jax
 import numpy as np
 
 from mjx_multiarm.files import atomic_write
-from mjx_multiarm.pickplace.plans import RunPlan, plan_runs
+from mjx_multiarm.pickplace.plans import APPROACH_HEIGHT, RunPlan, plan_runs
 from mjx_multiarm.pickplace.protocol import CAUSES, MAX_CONTROL_STEPS
 
 #: The paper's application figures (section "Application"; the original demo's count).
@@ -176,6 +176,8 @@ def main(argv=None) -> None:
     parser.add_argument("--seed", type=int, default=0, help="picks the runs: run r draws from (seed, r)")
     parser.add_argument("--objects", help="comma-separated object per arm for every run (default: drawn)")
     parser.add_argument("--checkpoint", type=pathlib.Path, help="policy file or run directory (default: the shipped policy)")
+    parser.add_argument("--approach-height", type=float, default=APPROACH_HEIGHT, metavar="M",
+                        help=f"the policy's waypoint above each pregrasp (default {APPROACH_HEIGHT}; 0: the original protocol)")
     parser.add_argument("--workers", type=int, default=os.cpu_count(), help="MuJoCo C processes (default: one per core)")
     parser.add_argument("--batch", type=int, default=25, help="runs per lockstep batch (MuJoCo C) or per jitted call (MJX)")
     parser.add_argument("--max-steps", type=int, default=MAX_CONTROL_STEPS,
@@ -205,7 +207,10 @@ def main(argv=None) -> None:
             parser.error(f"--objects: the layout has 4 arms, one object each; got {len(objects)}")
     out = args.out or pathlib.Path("runs") / f"pickplace-{time.strftime('%Y%m%d-%H%M%S')}"
     start = time.perf_counter()
-    plans = plan_runs(scene, args.seed, args.runs, objects)
+    try:
+        plans = plan_runs(scene, args.seed, args.runs, objects, args.approach_height)
+    except ValueError as error:
+        parser.error(str(error))
     planning = time.perf_counter() - start
     start = time.perf_counter()
     results = run_all(plans, args.backend, args.checkpoint, args.workers, args.batch, args.max_steps)
@@ -215,7 +220,7 @@ def main(argv=None) -> None:
         result["objects"] = [scene.object_names[o] for o in np.asarray(plans.objects[r])]
     summary = summarize(results, wall)
     settings = {"backend": args.backend, "seed": args.seed, "runs": args.runs, "workers": args.workers,
-                "batch": args.batch, "max_steps": args.max_steps, "checkpoint": str(args.checkpoint or "shipped"),
+                "batch": args.batch, "max_steps": args.max_steps, "approach_height": args.approach_height, "checkpoint": str(args.checkpoint or "shipped"),
                 "planning_seconds": planning}
     _write_runs_csv(out / "runs.csv", results)
     text = json.dumps({"settings": settings, "summary": summary, "paper": PAPER}, indent=1)

@@ -151,10 +151,12 @@ def test_a_full_run_on_mujoco_puts_every_object_in_the_bin(scene):
 
 def test_timeouts_and_collisions_end_runs(scene):
     """A step limit too short to finish ends the run as a timeout; run 0 of seed 1000 starts
-    with arm 1's gripper beside its object and ends in an arm-object collision while reaching."""
-    two = plans.plan_runs(scene, 1000, 2)
+    with arm 1's gripper beside its object and ends in an arm-object collision while reaching
+    (with the original protocol: no waypoint above the pregrasp)."""
+    two = plans.plan_runs(scene, 1000, 2, approach_height=0.0)
     results = backends.run_mujoco(scene, Planner.load().batched(4), two, max_control_steps=20)
-    assert results[0].cause == "arm-object" and results[0].cause_phase == "reach_pregrasp" and not results[0].success
+    assert results[0].cause == "arm-object" and results[0].cause_phase in ("reach_above", "reach_pregrasp")
+    assert not results[0].success
     assert results[1].cause == "timeout" and results[1].control_steps == 20
 
 
@@ -176,7 +178,8 @@ def test_cli_rejects_bad_input(tmp_path, capsys):
     for argv, message in ((["--objects", "cube,anvil,cube,cube"], "unknown object 'anvil'"),
                           (["--objects", "cube,cube,cube"], "4 arms"),
                           (["--checkpoint", str(tmp_path / "none.npz")], "no such policy file"),
-                          (["--runs", "0"], "--runs must be >= 1")):
+                          (["--runs", "0"], "--runs must be >= 1"),
+                          (["--approach-height", "-1"], "approach_height must be in [0, 0.5]")):
         with pytest.raises(SystemExit):
             pickplace.main([*argv, "--out", str(tmp_path)])
         assert message in capsys.readouterr().err

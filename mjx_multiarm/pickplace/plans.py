@@ -35,6 +35,8 @@ from mjx_multiarm.pickplace.scene import (
 )
 
 PREGRASP_BACKOFF = 0.10
+#: Height of the waypoint above the pregrasp position (``reach_above``; 0: the original protocol).
+APPROACH_HEIGHT = 0.25
 #: Initial configurations: home + U(-0.4, 0.4) rad per joint, collision-free, ee above 0.2 m.
 INIT_NOISE = 0.4
 INIT_MIN_EE_HEIGHT = 0.2
@@ -56,6 +58,8 @@ class RunPlan:
     objects: jnp.ndarray  # [4] object index per arm
     init_joints: jnp.ndarray  # [4, 6]
     object_pose: jnp.ndarray  # [4, 7] spawn pose (position, wxyz)
+    above_pos: jnp.ndarray  # [4, 3] the policy's waypoint (reach_above): above the pregrasp position ...
+    above_quat: jnp.ndarray  # [4, 4] ... with the orientation of a training target there
     reach_pos: jnp.ndarray  # [4, 3] the policy's target in reach_pregrasp: the pregrasp position ...
     reach_quat: jnp.ndarray  # [4, 4] ... with the orientation of a training target there
     pregrasp_joints: jnp.ndarray  # [4, 6] the exact pregrasp (to_pregrasp's goal)
@@ -222,13 +226,22 @@ def sample_initial_joints(rng: np.random.Generator, max_tries: int = 1000) -> np
     raise RuntimeError(f"no collision-free initial configuration in {max_tries} draws")
 
 
-def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None) -> RunPlan:
+def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None, approach_height: float = APPROACH_HEIGHT) -> RunPlan:
     """``runs`` run plans drawn from ``seed`` (run r uses ``np.random.default_rng([seed, r])``):
     one object per arm uniformly (or ``objects``: names or indices, one per arm, for every
-    run), initial configurations as the original."""
+    run), initial configurations as the original; the ``reach_above`` waypoint
+    ``approach_height`` (m) above each pregrasp position."""
     if runs < 1:
         raise ValueError(f"runs must be >= 1, got {runs}")
+    if not 0 <= approach_height <= 0.5:
+        raise ValueError(f"approach_height must be in [0, 0.5] m, got {approach_height}")
     table = grasp_table(scene)
+    nobj = len(scene.object_names)
+    above_pos = table["reach_pos"] + [0.0, 0.0, approach_height]
+    arm_rows = np.repeat(np.arange(NUM_ARMS), nobj)
+    above_joints = typical_joints(arm_rows, above_pos.reshape(-1, 3))
+    above = forward_kinematics(load_arm(), BASE_POS[arm_rows], BASE_QUAT[arm_rows], jnp.asarray(above_joints))
+    above_quat = np.asarray(above.ee_quat, np.float64).reshape(NUM_ARMS, nobj, 4)
     fixed = None
     if objects is not None:
         if len(objects) != NUM_ARMS:
@@ -241,7 +254,7 @@ def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None) -> RunP
         objs = fixed if fixed is not None else rng.integers(len(scene.object_names), size=NUM_ARMS)
         plans.append(RunPlan(
             objects=objs.astype(np.int32), init_joints=sample_initial_joints(rng), object_pose=table["spawn"][arms, objs],
-            reach_pos=table["reach_pos"][arms, objs], reach_quat=table["reach_quat"][arms, objs],
+            above_pos=above_pos[arms, objs], above_quat=above_quat[arms, objs], reach_pos=table["reach_pos"][arms, objs], reach_quat=table["reach_quat"][arms, objs],
             pregrasp_joints=table["pregrasp_joints"][arms, objs], grasp_joints=table["grasp_joints"][arms, objs],
             dump_pos=table["dump_pos"], dump_quat=table["dump_quat"], dump_joints=table["dump_joints"]))
     return jax.tree.map(lambda *xs: np.stack(xs).astype(np.int32 if xs[0].dtype.kind == "i" else np.float32), *plans)

@@ -2,8 +2,11 @@
 
 Per arm, as the original demo (``demo/demo.py`` of the paper's code):
 
-1. ``reach_pregrasp`` (policy): the shared reaching policy drives the arm to the pregrasp
-   position (the grasp backed off 0.10 m along the approach axis); done within 5 cm / 0.2 rad;
+1. ``reach_above`` (policy; beyond the original): the shared reaching policy drives the arm
+   to a waypoint ``approach_height`` above the pregrasp position (0 skips it: the original
+   protocol), then ``reach_pregrasp`` (policy) to the pregrasp position (the grasp backed
+   off 0.10 m along the approach axis); each done within 5 cm / 0.2 rad. The waypoint keeps
+   the gripper high while an arm turns from home (over the bin) to its object;
 2. scripted: ``to_pregrasp`` (joint move to the exact pregrasp configuration), ``to_grasp``,
    ``close`` (the gripper closes; at its end the object is attached by a weld), ``lift``
    (0.30 m up, a Cartesian move by IK);
@@ -58,9 +61,9 @@ from mjx_multiarm.pickplace.scene import (
     PickPlaceScene,
 )
 
-PHASES = ("reach_pregrasp", "to_pregrasp", "to_grasp", "close", "lift", "reach_dump", "to_dump", "lower", "release",
+PHASES = ("reach_above", "reach_pregrasp", "to_pregrasp", "to_grasp", "close", "lift", "reach_dump", "to_dump", "lower", "release",
           "raise", "home", "done")
-(REACH_PREGRASP, TO_PREGRASP, TO_GRASP, CLOSE, LIFT, REACH_DUMP, TO_DUMP, LOWER, RELEASE, RAISE, HOME,
+(REACH_ABOVE, REACH_PREGRASP, TO_PREGRASP, TO_GRASP, CLOSE, LIFT, REACH_DUMP, TO_DUMP, LOWER, RELEASE, RAISE, HOME,
  DONE) = range(len(PHASES))
 #: Phases in which an arm may touch its own object.
 GRASP_WINDOW = (TO_GRASP, RAISE)
@@ -156,6 +159,18 @@ def lifted_joints(joints, dz: float):
     return solve_poses(load_arm(), frames.ee_pos + jnp.array([0.0, 0.0, dz]), frames.ee_quat, joints, iterations=40)[0]
 
 
+def _policy_phase(phase):
+    return (phase == REACH_ABOVE) | (phase == REACH_PREGRASP) | (phase == REACH_DUMP)
+
+
+def policy_target(plan: RunPlan, phase):
+    """[4, 3], [4, 4] each arm's policy target in ``phase`` [4] (meaningful in policy phases)."""
+    above, dump = (phase == REACH_ABOVE)[:, None], (phase == REACH_DUMP)[:, None]
+    pos = jnp.where(above, plan.above_pos, jnp.where(dump, plan.dump_pos, plan.reach_pos))
+    quat = jnp.where(above, plan.above_quat, jnp.where(dump, plan.dump_quat, plan.reach_quat))
+    return pos, quat
+
+
 def _first(flags_by_cause):
     """The first cause (in CAUSES order) whose flag is set, or NONE."""
     codes = jnp.array([c for c, _ in flags_by_cause], jnp.int32)
@@ -182,7 +197,7 @@ def make_controller(policy_step, scene: PickPlaceScene, max_steps: int = MAX_CON
         # Collisions of the configuration reached, under both rules.
         kernel = scene_contacts(arm_scene, base_pos, base_quat, joints, active)
         touch = sensors.contacts
-        in_policy = (phase == REACH_PREGRASP) | (phase == REACH_DUMP)
+        in_policy = _policy_phase(phase)
         attached = (phase > CLOSE) & (phase <= RELEASE)
         in_grasp = (phase >= GRASP_WINDOW[0]) & (phase <= GRASP_WINDOW[1])
         arm_arm = kernel.between_arms < 0
@@ -199,8 +214,7 @@ def make_controller(policy_step, scene: PickPlaceScene, max_steps: int = MAX_CON
         strict_now = _first(strict)
 
         # Phase transitions.
-        target_pos = jnp.where((phase == REACH_DUMP)[:, None], plan.dump_pos, plan.reach_pos)
-        target_quat = jnp.where((phase == REACH_DUMP)[:, None], plan.dump_quat, plan.reach_quat)
+        target_pos, target_quat = policy_target(plan, phase)
         reached = ((jnp.linalg.norm(frames.ee_pos - target_pos, axis=-1) < PHASE_TOLERANCE[0])
                    & (quat_angle(frames.ee_quat, target_quat) < PHASE_TOLERANCE[1]))
         done = jnp.where(in_policy, reached, state.phase_step >= state.duration) & (phase < DONE)
@@ -216,16 +230,14 @@ def make_controller(policy_step, scene: PickPlaceScene, max_steps: int = MAX_CON
         phase_step = jnp.where(done, 0, state.phase_step)
 
         # Commands for the next control step.
-        targets_pos = jnp.where(((phase == REACH_PREGRASP) | (phase == REACH_DUMP))[:, None],
-                                jnp.where((phase == REACH_DUMP)[:, None], plan.dump_pos, plan.reach_pos), frames.ee_pos)
-        targets_quat = jnp.where(((phase == REACH_PREGRASP) | (phase == REACH_DUMP))[:, None],
-                                 jnp.where((phase == REACH_DUMP)[:, None], plan.dump_quat, plan.reach_quat),
-                                 frames.ee_quat)
+        use_policy = _policy_phase(phase)
+        targets_pos, targets_quat = policy_target(plan, phase)
+        targets_pos = jnp.where(use_policy[:, None], targets_pos, frames.ee_pos)
+        targets_quat = jnp.where(use_policy[:, None], targets_quat, frames.ee_quat)
         policy = policy_step(base_pos, base_quat, state.prev_joints, joints, state.prev_target_pos,
                              state.prev_target_quat, targets_pos, targets_quat)
         fraction = jnp.minimum(1.0, (phase_step + 1) / duration)[:, None]
         scripted = start + (goal - start) * fraction
-        use_policy = (phase == REACH_PREGRASP) | (phase == REACH_DUMP)
         arm_target = jnp.where(use_policy[:, None], policy, scripted)
         closed = GRIPPER_STROKE / 2
         gripper_fraction = jnp.minimum(1.0, (phase_step + 1) / SCRIPTED_STEPS)

@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+import jax
 import mujoco
 import numpy as np
 
-from mjx_multiarm.pickplace.protocol import REACH_DUMP, REACH_PREGRASP
+from mjx_multiarm.pickplace.protocol import (
+    REACH_ABOVE,
+    REACH_DUMP,
+    REACH_PREGRASP,
+    policy_target,
+)
 from mjx_multiarm.render import COLOURS, _add_geom, make_renderer
 
 
@@ -34,11 +40,11 @@ class RunRecorder:
                 continue
             self.renderer.update_scene(datas[r], _camera(), self.options)
             phases = np.asarray(state.phase)[r]
+            targets = np.asarray(policy_target(jax.tree.map(lambda x, r=r: x[r], self.plans), phases)[0])
             for arm, phase in enumerate(phases):
-                if phase not in (REACH_PREGRASP, REACH_DUMP):
+                if phase not in (REACH_ABOVE, REACH_PREGRASP, REACH_DUMP):
                     continue
-                plan = self.plans
-                target = np.asarray(plan.dump_pos if phase == REACH_DUMP else plan.reach_pos)[r, arm]
+                target = targets[arm]
                 _add_geom(self.renderer.scene, mujoco.mjtGeom.mjGEOM_SPHERE, [0.03, 0, 0], target, np.eye(3),
                           [*COLOURS[arm][:3], 0.6])
             self.frames[r].append(self.renderer.render().copy())

@@ -168,22 +168,47 @@ def _add_gripper(ee: mujoco.MjsBody) -> None:
                         size=[0.035, PAD_HALF[1], 0.006], **kw)
 
 
-def _arm_spec(index: int) -> mujoco.MjSpec:
+def actuated_arm(gripper: bool = True, contacts: bool = True) -> mujoco.MjSpec:
+    """The project's UR5 with gravity compensation and joint armature (for its servos), and
+    optionally the gripper; ``contacts=False`` switches off all its contacts (pure dynamics)."""
     arm = mujoco.MjSpec.from_file(str(ARM_XML))
-    arm.body("base_link").mocap = False
     for geom in arm.geoms:
-        geom.contype, geom.conaffinity = ARM_BITS
+        geom.contype, geom.conaffinity = ARM_BITS if contacts else (0, 0)
         geom.group = 1  # visible in renders
         geom.rgba = [0.55, 0.6, 0.7, 1.0] if geom.name != "ee_link_0" else [0.2, 0.2, 0.2, 1.0]
-    for body in arm.bodies:
-        body.gravcomp = 1.0
     for joint in arm.joints:
         joint.armature = ARM_ARMATURE
         joint.actgravcomp = False
-    _add_gripper(arm.body("ee_link"))
-    for body in (arm.body("finger_left"), arm.body("finger_right")):
+    if gripper:
+        _add_gripper(arm.body("ee_link"))
+        if not contacts:
+            for geom in arm.geoms:
+                geom.contype = geom.conaffinity = 0
+    for body in arm.bodies:
         body.gravcomp = 1.0
     return arm
+
+
+def add_arm_servos(spec: mujoco.MjSpec, prefix: str) -> None:
+    """Position servos (:data:`ARM_KP`, :data:`ARM_KV`, torque limits) on an attached arm's joints."""
+    for j, joint in enumerate(load_arm().joint_names):
+        spec.add_actuator(name=f"{prefix}{joint}", target=f"{prefix}{joint}", trntype=mujoco.mjtTrn.mjTRN_JOINT,
+                          gaintype=mujoco.mjtGain.mjGAIN_FIXED, biastype=mujoco.mjtBias.mjBIAS_AFFINE,
+                          gainprm=[ARM_KP[j]] + [0] * 9, biasprm=[0, -ARM_KP[j], -ARM_KV[j]] + [0] * 7,
+                          ctrlrange=[-2 * np.pi, 2 * np.pi], forcerange=[-ARM_TORQUE[j], ARM_TORQUE[j]])
+
+
+def build_reaching_spec(num_arms: int) -> mujoco.MjSpec:
+    """Reaching teams under dynamics: ``num_arms`` servoed arms on mocap bases (placed per
+    task), no gripper and no contacts (collisions are the collision model's), 240 Hz."""
+    spec = mujoco.MjSpec()
+    spec.modelname = f"reaching_physics_{num_arms}"
+    spec.option.timestep = TIMESTEP
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    for i in range(num_arms):
+        spec.attach(actuated_arm(gripper=False, contacts=False), prefix=f"arm{i}/", frame=spec.worldbody.add_frame())
+        add_arm_servos(spec, f"arm{i}/")
+    return spec
 
 
 def build_spec(assets: PickPlaceAssets) -> mujoco.MjSpec:
@@ -211,12 +236,10 @@ def build_spec(assets: PickPlaceAssets) -> mujoco.MjSpec:
             spec.add_mesh(name=f"{name}_{k}", uservert=hull.reshape(-1).tolist())
     for i in range(NUM_ARMS):
         frame = world.add_frame(pos=BASE_POS[i], quat=BASE_QUAT[i])
-        spec.attach(_arm_spec(i), prefix=f"arm{i}/", frame=frame)
-        for j, joint in enumerate(load_arm().joint_names):
-            spec.add_actuator(name=f"arm{i}/{joint}", target=f"arm{i}/{joint}", trntype=mujoco.mjtTrn.mjTRN_JOINT,
-                              gaintype=mujoco.mjtGain.mjGAIN_FIXED, biastype=mujoco.mjtBias.mjBIAS_AFFINE,
-                              gainprm=[ARM_KP[j]] + [0] * 9, biasprm=[0, -ARM_KP[j], -ARM_KV[j]] + [0] * 7,
-                              ctrlrange=[-2 * np.pi, 2 * np.pi], forcerange=[-ARM_TORQUE[j], ARM_TORQUE[j]])
+        arm = actuated_arm()
+        arm.body("base_link").mocap = False  # welded to the world at the frame
+        spec.attach(arm, prefix=f"arm{i}/", frame=frame)
+        add_arm_servos(spec, f"arm{i}/")
         for side in ("left", "right"):
             spec.add_actuator(name=f"arm{i}/finger_{side}", target=f"arm{i}/finger_{side}",
                               trntype=mujoco.mjtTrn.mjTRN_JOINT, gaintype=mujoco.mjtGain.mjGAIN_FIXED,
