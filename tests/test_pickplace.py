@@ -183,3 +183,16 @@ def test_cli_rejects_bad_input(tmp_path, capsys):
         with pytest.raises(SystemExit):
             pickplace.main([*argv, "--out", str(tmp_path)])
         assert message in capsys.readouterr().err
+
+
+def test_physics_fidelity_runs_reaching_tasks_under_servos():
+    from eval.physics import physics_outcomes
+    from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
+
+    tasks = generate_chunk(GenerationSpec(count=2, arm_counts=(2,), max_arms=2, seed=3, chunk_size=2), 0)
+    out = physics_outcomes(Planner.load(), tasks, episode_steps=30)
+    assert out["tasks"] == 2 and abs(out["success_rate"] + out["collision_rate"] + out["timeout_rate"] - 1) < 1e-9
+    assert 0 <= out["tracking_error_rad"]["mean"] <= out["tracking_error_rad"]["max"] < 0.5
+    with pytest.raises(ValueError, match="every slot is active"):
+        physics_outcomes(Planner.load(), generate_chunk(GenerationSpec(count=2, arm_counts=(1,), max_arms=2, seed=3,
+                                                                      chunk_size=2), 0))
