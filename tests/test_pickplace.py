@@ -100,13 +100,8 @@ def test_scripted_grasp_lifts_and_holds_every_object(scene):
             mujoco.mj_step(m, d)
         start = d.xpos[scene.object_body].copy()
         for a in range(NUM_ARMS):
-            pos, quat = protocol.relative_pose(d.xpos[scene.ee_body[a]], d.xquat[scene.ee_body[a]],
-                                               d.xpos[scene.object_body[a]], d.xquat[scene.object_body[a]])
-            m.eq_data[scene.welds[a], 3:10] = np.concatenate([pos, quat])
-            d.eq_active[scene.welds[a]] = 1
-        held = [np.concatenate(protocol.relative_pose(d.xpos[scene.ee_body[a]], d.xquat[scene.ee_body[a]],
-                                                      d.xpos[scene.object_body[a]], d.xquat[scene.object_body[a]]))
-                for a in range(NUM_ARMS)]
+            backends.attach_mujoco(scene, m, d, a)
+        held = [backends.held_pose_mujoco(scene, d, a) for a in range(NUM_ARMS)]
         lifted = np.asarray(protocol.lifted_joints(jnp.asarray(grasp, jnp.float32), 0.3))
         for k in range(240):  # 1 s up, then 0.5 s holding
             d.ctrl[scene.arm_actuators] = grasp + (lifted - grasp) * min(1.0, (k + 1) / 120)
@@ -115,8 +110,7 @@ def test_scripted_grasp_lifts_and_holds_every_object(scene):
         name = scene.object_names[obj]
         assert np.all(rise > 0.27), f"{name}: rose {rise}"
         for a in range(NUM_ARMS):
-            now = np.concatenate(protocol.relative_pose(d.xpos[scene.ee_body[a]], d.xquat[scene.ee_body[a]],
-                                                        d.xpos[scene.object_body[a]], d.xquat[scene.object_body[a]]))
+            now = backends.held_pose_mujoco(scene, d, a)
             assert np.abs(now[:3] - held[a][:3]).max() < 0.005, f"{name}, arm {a}: slipped"
 
 

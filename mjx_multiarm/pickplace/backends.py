@@ -96,6 +96,19 @@ def _reset_mujoco(scene: PickPlaceScene, m: mujoco.MjModel, d: mujoco.MjData, pl
         mujoco.mj_step(m, d)
 
 
+def held_pose_mujoco(scene: PickPlaceScene, d: mujoco.MjData, arm: int) -> np.ndarray:
+    """[7] arm ``arm``'s object in its ee_link frame now (position, wxyz)."""
+    pos, quat = relative_pose(d.xpos[scene.ee_body[arm]], d.xquat[scene.ee_body[arm]], d.xpos[scene.object_body[arm]],
+                              d.xquat[scene.object_body[arm]])
+    return np.concatenate([np.asarray(pos), np.asarray(quat)])
+
+
+def attach_mujoco(scene: PickPlaceScene, m: mujoco.MjModel, d: mujoco.MjData, arm: int) -> None:
+    """Weld arm ``arm``'s object to its ee_link at their current relative pose."""
+    m.eq_data[scene.welds[arm], 3:10] = held_pose_mujoco(scene, d, arm)
+    d.eq_active[scene.welds[arm]] = 1
+
+
 def _sense_mujoco(scene: PickPlaceScene, d: mujoco.MjData, contacts: np.ndarray) -> np.ndarray:
     n = d.ncon
     if n:
@@ -143,10 +156,7 @@ def run_mujoco(scene: PickPlaceScene, policy_step, plans: RunPlan, max_control_s
         for r in np.flatnonzero(~ended):
             m, d = models[r], datas[r]
             for a in np.flatnonzero(commands.attach[r]):
-                pos, quat = relative_pose(d.xpos[scene.ee_body[a]], d.xquat[scene.ee_body[a]],
-                                          d.xpos[scene.object_body[a]], d.xquat[scene.object_body[a]])
-                m.eq_data[scene.welds[a], 3:10] = np.concatenate([np.asarray(pos), np.asarray(quat)])
-                d.eq_active[scene.welds[a]] = 1
+                attach_mujoco(scene, m, d, a)
             for a in np.flatnonzero(commands.release[r]):
                 d.eq_active[scene.welds[a]] = 0
             for k in range(SUBSTEPS):

@@ -85,7 +85,6 @@ CAUSES = ("none", "arm-arm", "arm-floor", "arm-bin", "arm-object", "arm-self", "
 TOUCH_FLOOR, TOUCH_BIN, TOUCH_OWN_OBJECT, TOUCH_OTHER_OBJECT = range(4)
 
 
-
 @struct.dataclass
 class Sensors:
     """What the physics reports after a control step."""
@@ -122,11 +121,11 @@ class ControllerState:
     cause: jnp.ndarray  # CAUSES index
     cause_phase: jnp.ndarray  # phase of the arm that caused the end (-1 if none)
     strict_cause: jnp.ndarray  # first stricter-accounting violation (NONE if none)
-    strict_step: jnp.ndarray
 
 
 def bin_interior(scene: PickPlaceScene) -> np.ndarray:
-    """[2] half extents (x, y) of the bin's rim: an object is in the bin when its x, y are inside."""
+    """[2] half extents (x, y) of the bin's walls (their centres, inside the rim): an object is
+    in the bin when its x, y are inside."""
     walls = [b for b in scene.assets.bin_boxes if b["name"].startswith("wall")]
     half = np.zeros(2)
     for box in walls:
@@ -136,7 +135,7 @@ def bin_interior(scene: PickPlaceScene) -> np.ndarray:
 
 
 def initial_state(plan: RunPlan) -> ControllerState:
-    """The state at the start of a run (every arm in ``reach_pregrasp``)."""
+    """The state at the start of a run (every arm in ``reach_above``)."""
     joints = jnp.asarray(plan.init_joints, jnp.float32)
     frames = forward_kinematics(load_arm(), BASE_POS, BASE_QUAT, joints)
     zeros = jnp.zeros(NUM_ARMS, jnp.int32)
@@ -145,7 +144,7 @@ def initial_state(plan: RunPlan) -> ControllerState:
         command=Commands(joints, jnp.zeros(NUM_ARMS, jnp.float32), jnp.zeros(NUM_ARMS, bool), jnp.zeros(NUM_ARMS, bool)),
         prev_joints=joints, prev_target_pos=frames.ee_pos, prev_target_quat=frames.ee_quat,
         step=jnp.int32(0), ended=jnp.bool_(False), success=jnp.bool_(False), cause=jnp.int32(NONE),
-        cause_phase=jnp.int32(-1), strict_cause=jnp.int32(NONE), strict_step=jnp.int32(-1))
+        cause_phase=jnp.int32(-1), strict_cause=jnp.int32(NONE))
 
 
 def _move_steps(start, goal):
@@ -153,10 +152,12 @@ def _move_steps(start, goal):
     return jnp.maximum(SCRIPTED_STEPS, jnp.ceil(jnp.max(jnp.abs(goal - start) / speed, axis=-1))).astype(jnp.int32)
 
 
-def lifted_joints(joints, dz: float):
-    """[4, 6] joint angles that move each arm's ee_link by ``dz`` vertically, orientation kept."""
+def lifted_joints(joints, dz):
+    """[4, 6] joint angles that move each arm's ee_link by ``dz`` (m; one number, or [4] one
+    per arm) vertically, orientation kept."""
     frames = forward_kinematics(load_arm(), jnp.zeros(3), jnp.array([1.0, 0.0, 0.0, 0.0]), joints)
-    return solve_poses(load_arm(), frames.ee_pos + jnp.array([0.0, 0.0, dz]), frames.ee_quat, joints, iterations=40)[0]
+    up = jnp.zeros_like(frames.ee_pos).at[..., 2].set(dz)
+    return solve_poses(load_arm(), frames.ee_pos + up, frames.ee_quat, joints, iterations=40)[0]
 
 
 def _policy_phase(phase):
@@ -219,10 +220,12 @@ def make_controller(policy_step, scene: PickPlaceScene, max_steps: int = MAX_CON
                    & (quat_angle(frames.ee_quat, target_quat) < PHASE_TOLERANCE[1]))
         done = jnp.where(in_policy, reached, state.phase_step >= state.duration) & (phase < DONE)
         phase = jnp.where(done, phase + 1, phase)
+        dz = jnp.select([phase == LIFT, phase == LOWER, phase == RAISE], [LIFT_HEIGHT, -DUMP_DROP, DUMP_DROP], 0.0)
+        cartesian = (phase == LIFT) | (phase == LOWER) | (phase == RAISE)
         goal = jnp.select(
-            [(phase == p)[:, None] for p in (TO_PREGRASP, TO_GRASP, LIFT, TO_DUMP, LOWER, RAISE, HOME)],
-            [plan.pregrasp_joints, plan.grasp_joints, lifted_joints(joints, LIFT_HEIGHT), plan.dump_joints,
-             lifted_joints(joints, -DUMP_DROP), lifted_joints(joints, DUMP_DROP), jnp.broadcast_to(home, joints.shape)],
+            [(phase == p)[:, None] for p in (TO_PREGRASP, TO_GRASP, TO_DUMP, HOME)] + [cartesian[:, None]],
+            [plan.pregrasp_joints, plan.grasp_joints, plan.dump_joints, jnp.broadcast_to(home, joints.shape),
+             lifted_joints(joints, dz)],
             joints)
         goal = jnp.where(done[:, None], goal, state.goal)
         start = jnp.where(done[:, None], joints, state.start)
@@ -263,8 +266,6 @@ def make_controller(policy_step, scene: PickPlaceScene, max_steps: int = MAX_CON
             cause=jnp.where(ends, cause, state.cause),
             cause_phase=jnp.where(ends & (collision != NONE), state.phase[culprit], state.cause_phase),
             strict_cause=jnp.where(~state.ended & (state.strict_cause == NONE), strict_now, state.strict_cause),
-            strict_step=jnp.where(~state.ended & (state.strict_cause == NONE) & (strict_now != NONE), state.step,
-                                  state.strict_step),
         )
         # An ended run holds its last commands.
         held = Commands(state.command.arm_target, state.command.gripper, jnp.zeros(NUM_ARMS, bool), jnp.zeros(NUM_ARMS, bool))

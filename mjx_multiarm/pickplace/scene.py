@@ -173,7 +173,6 @@ def actuated_arm(gripper: bool = True, contacts: bool = True) -> mujoco.MjSpec:
     optionally the gripper; ``contacts=False`` switches off all its contacts (pure dynamics)."""
     arm = mujoco.MjSpec.from_file(str(ARM_XML))
     for geom in arm.geoms:
-        geom.contype, geom.conaffinity = ARM_BITS if contacts else (0, 0)
         geom.group = 1  # visible in renders
         geom.rgba = [0.55, 0.6, 0.7, 1.0] if geom.name != "ee_link_0" else [0.2, 0.2, 0.2, 1.0]
     for joint in arm.joints:
@@ -181,9 +180,8 @@ def actuated_arm(gripper: bool = True, contacts: bool = True) -> mujoco.MjSpec:
         joint.actgravcomp = False
     if gripper:
         _add_gripper(arm.body("ee_link"))
-        if not contacts:
-            for geom in arm.geoms:
-                geom.contype = geom.conaffinity = 0
+    for geom in arm.geoms:
+        geom.contype, geom.conaffinity = ARM_BITS if contacts else (0, 0)
     for body in arm.bodies:
         body.gravcomp = 1.0
     return arm
