@@ -3,6 +3,8 @@
     python -m eval.pickplace --runs 500 --seed 1000 --out results/pickplace --json
     python -m eval.pickplace --runs 64 --backend mjx --batch 64      # MJX: one jitted batch
     python -m eval.pickplace --runs 20 --render 2                    # PNG frames (+ MP4) of 2 runs
+    python -m eval.pickplace --runs 500 --seed 1000 --safe           # the policy's team steps shielded
+    python -m eval.pickplace --runs 500 --approach-height 0 --start-height 0   # the original protocol
 
 Every arm runs the protocol of :mod:`mjx_multiarm.pickplace.protocol` with the shared
 reaching policy (default: the shipped one) under MuJoCo physics: MuJoCo C (default; runs in
@@ -33,6 +35,7 @@ import argparse
 import concurrent.futures
 import csv
 import dataclasses
+import functools
 import io
 import json
 import multiprocessing
@@ -45,7 +48,12 @@ import jax
 import numpy as np
 
 from mjx_multiarm.files import atomic_write
-from mjx_multiarm.pickplace.plans import APPROACH_HEIGHT, RunPlan, plan_runs
+from mjx_multiarm.pickplace.plans import (
+    APPROACH_HEIGHT,
+    START_HEIGHT,
+    RunPlan,
+    plan_runs,
+)
 from mjx_multiarm.pickplace.protocol import CAUSES, MAX_CONTROL_STEPS
 
 #: The paper's application figures (section "Application"; the original demo's count).
@@ -54,18 +62,21 @@ PAPER = {"runs": 500, "valid_runs": 298, "paper_success_rate": 0.783, "mean_phys
 VALID_FAILURES = ("arm-arm", "arm-floor", "outside-bin")
 
 
-def _planner(checkpoint: pathlib.Path | None):
+@functools.cache
+def _policy_step(checkpoint: pathlib.Path | None, safe: bool = False):
+    """The team step of the policy (once per process: the backends' compilations are reused
+    by every batch); ``safe`` shields it (:mod:`mjx_multiarm.env.shield`)."""
     from eval.benchmark import load_planner
 
-    return load_planner(checkpoint)
+    return load_planner(checkpoint, safe=safe).batched(4)
 
 
-def _run_mujoco_chunk(checkpoint, plans: RunPlan, max_steps: int) -> list[dict]:
+def _run_mujoco_chunk(checkpoint, safe: bool, plans: RunPlan, max_steps: int) -> list[dict]:
     """One worker's share: its runs in lockstep on MuJoCo C."""
     from mjx_multiarm.pickplace.backends import run_mujoco
     from mjx_multiarm.pickplace.scene import build_scene
 
-    results = run_mujoco(build_scene(), _planner(checkpoint).batched(4), plans, max_steps)
+    results = run_mujoco(build_scene(), _policy_step(checkpoint, safe), plans, max_steps)
     return [dataclasses.asdict(r) for r in results]
 
 
@@ -74,20 +85,21 @@ def _chunks(plans: RunPlan, size: int) -> list[tuple[int, RunPlan]]:
     return [(start, jax.tree.map(lambda x, s=start: x[s:s + size], plans)) for start in range(0, n, size)]
 
 
-def run_all(plans: RunPlan, backend: str, checkpoint, workers: int, batch: int, max_steps: int) -> list[dict]:
+def run_all(plans: RunPlan, backend: str, checkpoint, workers: int, batch: int, max_steps: int,
+            safe: bool = False) -> list[dict]:
     """Every run's result dict, in run order."""
     chunks = _chunks(plans, batch)
     if backend == "mjx":
         from mjx_multiarm.pickplace.backends import run_mjx
         from mjx_multiarm.pickplace.scene import build_scene
 
-        step = _planner(checkpoint).batched(4)
+        step = _policy_step(checkpoint, safe)
         return [dataclasses.asdict(r) for _, chunk in chunks for r in run_mjx(build_scene(), step, chunk, max_steps)]
     if workers <= 1:
-        return [r for _, chunk in chunks for r in _run_mujoco_chunk(checkpoint, chunk, max_steps)]
+        return [r for _, chunk in chunks for r in _run_mujoco_chunk(checkpoint, safe, chunk, max_steps)]
     context = multiprocessing.get_context("spawn")  # JAX does not survive fork
     with concurrent.futures.ProcessPoolExecutor(workers, mp_context=context) as pool:
-        futures = [pool.submit(_run_mujoco_chunk, checkpoint, chunk, max_steps) for _, chunk in chunks]
+        futures = [pool.submit(_run_mujoco_chunk, checkpoint, safe, chunk, max_steps) for _, chunk in chunks]
         return [r for f in futures for r in f.result()]
 
 
@@ -146,7 +158,8 @@ def _write_runs_csv(path: pathlib.Path, results: list[dict]) -> None:
     atomic_write(path, lambda f: f.write(buffer.getvalue().encode()))
 
 
-def render_runs(plans: RunPlan, count: int, checkpoint, out: pathlib.Path, max_steps: int) -> list[pathlib.Path]:
+def render_runs(plans: RunPlan, count: int, checkpoint, out: pathlib.Path, max_steps: int,
+                safe: bool = False) -> list[pathlib.Path]:
     """Frames (and an MP4 where imageio is installed) of the first ``count`` runs, on MuJoCo C."""
     from mjx_multiarm.pickplace.backends import run_mujoco
     from mjx_multiarm.pickplace.render import RunRecorder
@@ -156,7 +169,7 @@ def render_runs(plans: RunPlan, count: int, checkpoint, out: pathlib.Path, max_s
     scene = build_scene()
     subset = jax.tree.map(lambda x: x[:count], plans)
     recorder = RunRecorder(scene.model, range(count), subset)
-    run_mujoco(scene, _planner(checkpoint).batched(4), subset, max_steps, on_step=recorder.on_step)
+    run_mujoco(scene, _policy_step(checkpoint, safe), subset, max_steps, on_step=recorder.on_step)
     recorder.close()
     written = []
     for r, frames in recorder.frames.items():
@@ -177,7 +190,12 @@ def main(argv=None) -> None:
     parser.add_argument("--objects", help="comma-separated object per arm for every run (default: drawn)")
     parser.add_argument("--checkpoint", type=pathlib.Path, help="policy file or run directory (default: the shipped policy)")
     parser.add_argument("--approach-height", type=float, default=APPROACH_HEIGHT, metavar="M",
-                        help=f"the policy's waypoint above each pregrasp (default {APPROACH_HEIGHT}; 0: the original protocol)")
+                        help=f"the policy's waypoint above each pregrasp (default {APPROACH_HEIGHT}; 0: none, as the original)")
+    parser.add_argument("--start-height", type=float, default=START_HEIGHT, metavar="M",
+                        help=f"arms starting lower first rise straight up to this ee height (default {START_HEIGHT}; "
+                             "0: no rise, as the original; with --approach-height 0: the original protocol)")
+    parser.add_argument("--safe", action="store_true",
+                        help="shield the policy's team steps (beyond the paper): a step that would collide between arms is replaced")
     parser.add_argument("--workers", type=int, default=os.cpu_count(), help="MuJoCo C processes (default: one per core)")
     parser.add_argument("--batch", type=int, default=25, help="runs per lockstep batch (MuJoCo C) or per jitted call (MJX)")
     parser.add_argument("--max-steps", type=int, default=MAX_CONTROL_STEPS,
@@ -208,19 +226,19 @@ def main(argv=None) -> None:
     out = args.out or pathlib.Path("runs") / f"pickplace-{time.strftime('%Y%m%d-%H%M%S')}"
     start = time.perf_counter()
     try:
-        plans = plan_runs(scene, args.seed, args.runs, objects, args.approach_height)
+        plans = plan_runs(scene, args.seed, args.runs, objects, args.approach_height, args.start_height)
     except ValueError as error:
         parser.error(str(error))
     planning = time.perf_counter() - start
     start = time.perf_counter()
-    results = run_all(plans, args.backend, args.checkpoint, args.workers, args.batch, args.max_steps)
+    results = run_all(plans, args.backend, args.checkpoint, args.workers, args.batch, args.max_steps, args.safe)
     wall = time.perf_counter() - start
     for r, result in enumerate(results):
         result["run"] = r
         result["objects"] = [scene.object_names[o] for o in np.asarray(plans.objects[r])]
     summary = summarize(results, wall)
     settings = {"backend": args.backend, "seed": args.seed, "runs": args.runs, "workers": args.workers,
-                "batch": args.batch, "max_steps": args.max_steps, "approach_height": args.approach_height, "checkpoint": str(args.checkpoint or "shipped"),
+                "batch": args.batch, "max_steps": args.max_steps, "approach_height": args.approach_height, "start_height": args.start_height, "safe": args.safe, "checkpoint": str(args.checkpoint or "shipped"),
                 "planning_seconds": planning}
     _write_runs_csv(out / "runs.csv", results)
     text = json.dumps({"settings": settings, "summary": summary, "paper": PAPER}, indent=1)
@@ -234,7 +252,7 @@ def main(argv=None) -> None:
         from mjx_multiarm.render import RenderingUnavailable
 
         try:
-            for path in render_runs(plans, args.render, args.checkpoint, out / "render", args.max_steps):
+            for path in render_runs(plans, args.render, args.checkpoint, out / "render", args.max_steps, args.safe):
                 print(f"render: {path}")
         except RenderingUnavailable as error:
             print(f"render: skipped ({error})", file=sys.stderr)

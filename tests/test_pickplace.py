@@ -15,9 +15,12 @@ import pytest
 from mjx_multiarm.geometry.ik import solve_poses
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.geometry.transforms import quat_angle
 from mjx_multiarm.pickplace import backends, plans, protocol
 from mjx_multiarm.pickplace.scene import (
     ASSETS,
+    BASE_POS,
+    BASE_QUAT,
     GRIPPER_STROKE,
     NUM_ARMS,
     PARKED_OFFSET,
@@ -134,6 +137,33 @@ def test_arm_contacts_classify_touches(scene):
                                                                    jnp.asarray(dist), xp=jnp)), expected)
 
 
+def test_initial_configurations_touch_nothing_and_low_arms_rise(scene):
+    """Initial configurations are free in the whole scene (grippers against the bin, floor
+    and objects, as the original checks them), and ``rise`` lifts every arm that starts
+    below the start height straight up to it, orientation kept; higher arms stay."""
+    runs = plans.plan_runs(scene, 4000, 12)  # run 9 of seed 4000 first drew a gripper inside the bin wall
+    data = mujoco.MjData(copy.deepcopy(scene.model))
+    for r in range(12):
+        assert not plans._arms_touch_scene(scene, data, runs.objects[r], runs.object_pose[r], runs.init_joints[r])
+    start = forward_kinematics(load_arm(), jnp.asarray(BASE_POS), jnp.asarray(BASE_QUAT), jnp.asarray(runs.init_joints))
+    end = forward_kinematics(load_arm(), jnp.asarray(BASE_POS), jnp.asarray(BASE_QUAT), jnp.asarray(runs.rise_joints))
+    start_z, end_z = np.asarray(start.ee_pos[..., 2]), np.asarray(end.ee_pos[..., 2])
+    low = start_z < plans.START_HEIGHT
+    assert low.any() and (~low).any()
+    np.testing.assert_allclose(end_z[low], plans.START_HEIGHT, atol=0.01)
+    np.testing.assert_allclose(np.asarray(end.ee_pos[..., :2]), np.asarray(start.ee_pos[..., :2]), atol=0.01)
+    assert (np.asarray(quat_angle(end.ee_quat, start.ee_quat)) < 0.02).all()
+    np.testing.assert_array_equal(runs.rise_joints[~low], runs.init_joints[~low])
+    # The team leaves ``rise`` together; without a rise, straight to the first policy phase.
+    state = protocol.initial_state(jax.tree.map(lambda x: x[0], runs))
+    assert (np.asarray(state.phase) == protocol.RISE).all() and len(set(np.asarray(state.duration).tolist())) == 1
+    flat = plans.plan_runs(scene, 4000, 1, start_height=0.0)
+    np.testing.assert_array_equal(flat.rise_joints, flat.init_joints)
+    assert (np.asarray(protocol.initial_state(jax.tree.map(lambda x: x[0], flat)).duration) == 0).all()
+    with pytest.raises(ValueError, match="start_height"):
+        plans.plan_runs(scene, 0, 1, start_height=-0.1)
+
+
 def test_a_full_run_on_mujoco_puts_every_object_in_the_bin(scene):
     run = jax.tree.map(lambda x: x[1:2], plans.plan_runs(scene, 1000, 2))  # run 1 of seed 1000
     [result] = backends.run_mujoco(scene, Planner.load().batched(4), run, max_control_steps=600)
@@ -146,8 +176,8 @@ def test_a_full_run_on_mujoco_puts_every_object_in_the_bin(scene):
 def test_timeouts_and_collisions_end_runs(scene):
     """A step limit too short to finish ends the run as a timeout; run 0 of seed 1000 starts
     with arm 1's gripper beside its object and ends in an arm-object collision while reaching
-    (with the original protocol: no waypoint above the pregrasp)."""
-    two = plans.plan_runs(scene, 1000, 2, approach_height=0.0)
+    (with the original protocol: no rise, no waypoint above the pregrasp)."""
+    two = plans.plan_runs(scene, 1000, 2, approach_height=0.0, start_height=0.0)
     results = backends.run_mujoco(scene, Planner.load().batched(4), two, max_control_steps=20)
     assert results[0].cause == "arm-object" and results[0].cause_phase in ("reach_above", "reach_pregrasp")
     assert not results[0].success
@@ -173,10 +203,32 @@ def test_cli_rejects_bad_input(tmp_path, capsys):
                           (["--objects", "cube,cube,cube"], "4 arms"),
                           (["--checkpoint", str(tmp_path / "none.npz")], "no such policy file"),
                           (["--runs", "0"], "--runs must be >= 1"),
-                          (["--approach-height", "-1"], "approach_height must be in [0, 0.5]")):
+                          (["--approach-height", "-1"], "approach_height must be in [0, 0.5]"),
+                          (["--start-height", "2"], "start_height must be in [0, 0.8]")):
         with pytest.raises(SystemExit):
             pickplace.main([*argv, "--out", str(tmp_path)])
         assert message in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_cli_writes_outcomes_and_renders(tmp_path, capsys):
+    """One short run end to end: the per-run table, the summary, the JSON line, and a
+    rendered run (PNG frames and an MP4)."""
+    from eval import pickplace
+
+    pickplace.main(["--runs", "2", "--seed", "1000", "--max-steps", "4", "--workers", "1", "--render", "1",
+                    "--out", str(tmp_path), "--json"])
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["runs"] == 2 and set(summary) >= {"success_rate", "paper_success_rate", "valid_runs", "failures"}
+    assert (tmp_path / "runs.csv").read_text().count("\n") == 3 and (tmp_path / "summary.md").exists()
+    frames = sorted((tmp_path / "render" / "run_0").glob("*.png"))
+    if not frames:
+        pytest.skip("rendering unavailable on this machine")
+    video = tmp_path / "render" / "run_0.mp4"
+    assert video.stat().st_size > 1000
+    import imageio.v3 as iio
+
+    assert iio.imread(video).shape[0] >= 2  # a frame every other control step
 
 
 def test_physics_fidelity_runs_reaching_tasks_under_servos():

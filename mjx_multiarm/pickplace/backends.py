@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import time
 
 import jax
@@ -73,7 +74,9 @@ class RunResult:
         return results
 
 
+@functools.cache
 def _controller(scene: PickPlaceScene, policy_step, max_steps: int):
+    """The jitted controller of a batch of runs (one per scene, policy and step limit)."""
     return jax.jit(jax.vmap(make_controller(policy_step, scene, max_steps)))
 
 
@@ -181,8 +184,10 @@ def _sensors_mujoco(scene: PickPlaceScene, datas, touched: np.ndarray) -> Sensor
 # MJX
 
 
+@functools.cache
 def _mjx_advance(scene: PickPlaceScene, policy_step, chunk: int, max_steps: int):
-    """The jitted step of a batch of runs: ``chunk`` control steps."""
+    """The jitted step of a batch of runs: ``chunk`` control steps (one per scene, policy,
+    chunk and step limit: later batches of the same size reuse its compilation)."""
     model = mjx.put_model(scene.model)
     control = make_controller(policy_step, scene, max_steps)
     arm_act = jnp.asarray(scene.arm_actuators)

@@ -9,10 +9,12 @@ policy's targets.
 
 from __future__ import annotations
 
+import copy
 import functools
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 from flax import struct
 
@@ -22,6 +24,7 @@ from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.geometry.transforms import quat_mul, quat_to_mat, wxyz_to_xyzw
 from mjx_multiarm.pickplace.scene import (
+    ARM,
     ARM_BASES,
     BASE_POS,
     BASE_QUAT,
@@ -37,7 +40,11 @@ from mjx_multiarm.pickplace.scene import (
 PREGRASP_BACKOFF = 0.10
 #: Height of the waypoint above the pregrasp position (``reach_above``; 0: the original protocol).
 APPROACH_HEIGHT = 0.25
-#: Initial configurations: home + U(-0.4, 0.4) rad per joint, collision-free, ee above 0.2 m.
+#: Before its first policy phase, an arm whose end effector starts lower than this (m) rises
+#: straight up to it (``rise``; 0: no rise, the original protocol).
+START_HEIGHT = 0.3
+#: Initial configurations: home + U(-0.4, 0.4) rad per joint, collision-free in the whole
+#: scene (arms, grippers, bin, floor, objects), ee above 0.2 m.
 INIT_NOISE = 0.4
 INIT_MIN_EE_HEIGHT = 0.2
 #: Resting orientations tried besides upright (wxyz): the cube rests on any face.
@@ -57,6 +64,7 @@ class RunPlan:
 
     objects: jnp.ndarray  # [4] object index per arm
     init_joints: jnp.ndarray  # [4, 6]
+    rise_joints: jnp.ndarray  # [4, 6] the end of ``rise`` (init_joints where the arm does not rise)
     object_pose: jnp.ndarray  # [4, 7] spawn pose (position, wxyz)
     above_pos: jnp.ndarray  # [4, 3] the policy's waypoint (reach_above): above the pregrasp position ...
     above_quat: jnp.ndarray  # [4, 4] ... with the orientation of a training target there
@@ -214,27 +222,73 @@ def grasp_table(scene: PickPlaceScene) -> dict:
     return table
 
 
-def sample_initial_joints(rng: np.random.Generator, max_tries: int = 1000) -> np.ndarray:
+def lifted_joints(joints, dz):
+    """[..., 4, 6] joint angles that move each arm's ee_link by ``dz`` (m; one number, or [..., 4]
+    one per arm) vertically, orientation kept."""
+    frames = forward_kinematics(load_arm(), jnp.zeros(3), jnp.array([1.0, 0.0, 0.0, 0.0]), joints)
+    up = jnp.zeros_like(frames.ee_pos).at[..., 2].set(dz)
+    return solve_poses(load_arm(), frames.ee_pos + up, frames.ee_quat, joints, iterations=40)[0]
+
+
+def rise_joints(init_joints: np.ndarray, start_height: float) -> np.ndarray:
+    """[R, 4, 6] where each arm's ``rise`` ends: its end effector lifted straight up to
+    ``start_height`` (arms already higher stay); an arm whose lift IK misses by more than
+    1 cm or collides stays where it is."""
+    init = jnp.asarray(init_joints, jnp.float32)
+    ee_z = np.asarray(forward_kinematics(load_arm(), BASE_POS, BASE_QUAT, init).ee_pos[..., 2])
+    dz = np.maximum(start_height - ee_z, 0.0)
+    lifted = np.asarray(lifted_joints(init, jnp.asarray(dz, jnp.float32)), np.float64)
+    reached = np.asarray(forward_kinematics(load_arm(), BASE_POS, BASE_QUAT, jnp.asarray(lifted, jnp.float32)).ee_pos[..., 2])
+    base = np.concatenate([BASE_POS, np.asarray(wxyz_to_xyzw(BASE_QUAT))], 1)
+    free = np.array([~evaluate_arms(base, q).collided for q in lifted])
+    ok = (np.abs(reached - ee_z - dz) < 0.01) & free & (dz > 0)
+    return np.where(ok[..., None], lifted, init_joints)
+
+
+def _arms_touch_scene(scene: PickPlaceScene, data: mujoco.MjData, objects, object_pose, joints) -> bool:
+    """Whether an arm or its gripper touches the bin, the floor or an object (MuJoCo C's
+    collision) at ``joints`` [4, 6] with ``objects`` placed at ``object_pose`` [4, 7]; the
+    model's geom positions are set for ``objects``."""
+    m = data.model
+    m.geom_pos[:] = scene.geom_pos(objects)
+    mujoco.mj_resetData(m, data)
+    for a in range(NUM_ARMS):
+        data.qpos[scene.arm_qpos[a]] = joints[a]
+        data.qpos[scene.object_qpos[a]:scene.object_qpos[a] + 7] = object_pose[a]
+    mujoco.mj_forward(m, data)
+    n = data.ncon
+    geoms = np.stack([data.contact.geom1[:n], data.contact.geom2[:n]])
+    return bool(((scene.geom_kind[geoms] == ARM).any(axis=0) & (data.contact.dist[:n] < 0)).any())
+
+
+def sample_initial_joints(rng: np.random.Generator, clear=None, max_tries: int = 1000) -> np.ndarray:
     """[4, 6] home + U(-0.4, 0.4) per joint, redrawn until the team is collision-free with
-    every end effector above 0.2 m (the original's rule)."""
+    every end effector above 0.2 m (the original's rule). The arms are checked against each
+    other by the collision model; ``clear(joints) -> bool`` (if given) checks the rest of
+    the scene, as the original checks every arm with its gripper against every other body."""
     base = np.concatenate([BASE_POS, np.asarray(wxyz_to_xyzw(BASE_QUAT))], 1)
     for _ in range(max_tries):
         joints = load_arm().home + rng.uniform(-INIT_NOISE, INIT_NOISE, (NUM_ARMS, 6))
         at = evaluate_arms(base, joints)
-        if not at.collided.any() and (at.ee_pos[:, 2] > INIT_MIN_EE_HEIGHT).all():
+        if (not at.collided.any() and (at.ee_pos[:, 2] > INIT_MIN_EE_HEIGHT).all()
+                and (clear is None or clear(joints))):
             return joints
     raise RuntimeError(f"no collision-free initial configuration in {max_tries} draws")
 
 
-def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None, approach_height: float = APPROACH_HEIGHT) -> RunPlan:
+def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None, approach_height: float = APPROACH_HEIGHT,
+              start_height: float = START_HEIGHT) -> RunPlan:
     """``runs`` run plans drawn from ``seed`` (run r uses ``np.random.default_rng([seed, r])``):
     one object per arm uniformly (or ``objects``: names or indices, one per arm, for every
-    run), initial configurations as the original; the ``reach_above`` waypoint
-    ``approach_height`` (m) above each pregrasp position."""
+    run), initial configurations as the original; the ``rise`` to ``start_height`` (m) and
+    the ``reach_above`` waypoint ``approach_height`` (m) above each pregrasp position (0
+    skips either)."""
     if runs < 1:
         raise ValueError(f"runs must be >= 1, got {runs}")
     if not 0 <= approach_height <= 0.5:
         raise ValueError(f"approach_height must be in [0, 0.5] m, got {approach_height}")
+    if not 0 <= start_height <= 0.8:
+        raise ValueError(f"start_height must be in [0, 0.8] m, got {start_height}")
     table = grasp_table(scene)
     nobj = len(scene.object_names)
     above_pos = table["reach_pos"] + [0.0, 0.0, approach_height]
@@ -249,12 +303,18 @@ def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None, approac
         fixed = np.array([scene.object_index(o) if isinstance(o, str) else int(o) for o in objects])
     plans = []
     arms = np.arange(NUM_ARMS)
+    data = mujoco.MjData(copy.deepcopy(scene.model))
     for r in range(runs):
         rng = np.random.default_rng([seed, r])
         objs = fixed if fixed is not None else rng.integers(len(scene.object_names), size=NUM_ARMS)
+        spawn = table["spawn"][arms, objs]
+        init = sample_initial_joints(rng, lambda q, o=objs, p=spawn: not _arms_touch_scene(scene, data, o, p, q))
         plans.append(RunPlan(
-            objects=objs.astype(np.int32), init_joints=sample_initial_joints(rng), object_pose=table["spawn"][arms, objs],
+            objects=objs.astype(np.int32), init_joints=init, rise_joints=init, object_pose=spawn,
             above_pos=above_pos[arms, objs], above_quat=above_quat[arms, objs], reach_pos=table["reach_pos"][arms, objs], reach_quat=table["reach_quat"][arms, objs],
             pregrasp_joints=table["pregrasp_joints"][arms, objs], grasp_joints=table["grasp_joints"][arms, objs],
             dump_pos=table["dump_pos"], dump_quat=table["dump_quat"], dump_joints=table["dump_joints"]))
-    return jax.tree.map(lambda *xs: np.stack(xs).astype(np.int32 if xs[0].dtype.kind == "i" else np.float32), *plans)
+    plans = jax.tree.map(lambda *xs: np.stack(xs), *plans)
+    if start_height > 0:
+        plans = plans.replace(rise_joints=rise_joints(plans.init_joints, start_height))
+    return jax.tree.map(lambda x: x.astype(np.int32 if x.dtype.kind == "i" else np.float32), plans)

@@ -2,6 +2,10 @@
 
 Per arm, as the original demo (``demo/demo.py`` of the paper's code):
 
+0. ``rise`` (scripted; beyond the original): an arm whose end effector starts lower than
+   ``start_height`` lifts it straight up, and the team starts its policy phases together
+   when every rise is over (the arms start pointing at the bin, grippers near its walls,
+   where the policy, which does not see the bin, would sweep through them);
 1. ``reach_above`` (policy; beyond the original): the shared reaching policy drives the arm
    to a waypoint ``approach_height`` above the pregrasp position (0 skips it: the original
    protocol), then ``reach_pregrasp`` (policy) to the pregrasp position (the grasp backed
@@ -42,12 +46,11 @@ from flax import struct
 
 from mjx_multiarm.env.reaching import CONTROL_PERIOD
 from mjx_multiarm.geometry.collision import scene_contacts
-from mjx_multiarm.geometry.ik import solve_poses
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.geometry.scene import build_scene as build_arm_scene
 from mjx_multiarm.geometry.transforms import quat_angle, quat_mul, quat_to_mat
-from mjx_multiarm.pickplace.plans import RunPlan
+from mjx_multiarm.pickplace.plans import RunPlan, lifted_joints
 from mjx_multiarm.pickplace.scene import (
     ARM,
     BASE_POS,
@@ -61,9 +64,9 @@ from mjx_multiarm.pickplace.scene import (
     PickPlaceScene,
 )
 
-PHASES = ("reach_above", "reach_pregrasp", "to_pregrasp", "to_grasp", "close", "lift", "reach_dump", "to_dump", "lower", "release",
+PHASES = ("rise", "reach_above", "reach_pregrasp", "to_pregrasp", "to_grasp", "close", "lift", "reach_dump", "to_dump", "lower", "release",
           "raise", "home", "done")
-(REACH_ABOVE, REACH_PREGRASP, TO_PREGRASP, TO_GRASP, CLOSE, LIFT, REACH_DUMP, TO_DUMP, LOWER, RELEASE, RAISE, HOME,
+(RISE, REACH_ABOVE, REACH_PREGRASP, TO_PREGRASP, TO_GRASP, CLOSE, LIFT, REACH_DUMP, TO_DUMP, LOWER, RELEASE, RAISE, HOME,
  DONE) = range(len(PHASES))
 #: Phases in which an arm may touch its own object.
 GRASP_WINDOW = (TO_GRASP, RAISE)
@@ -135,12 +138,17 @@ def bin_interior(scene: PickPlaceScene) -> np.ndarray:
 
 
 def initial_state(plan: RunPlan) -> ControllerState:
-    """The state at the start of a run (every arm in ``reach_above``)."""
+    """The state at the start of a run: every arm in ``rise``, for as long as the slowest
+    arm's rise takes (arms that do not rise hold; none rising: ``reach_above`` from the
+    first control step)."""
     joints = jnp.asarray(plan.init_joints, jnp.float32)
+    goal = jnp.asarray(plan.rise_joints, jnp.float32)
     frames = forward_kinematics(load_arm(), BASE_POS, BASE_QUAT, joints)
     zeros = jnp.zeros(NUM_ARMS, jnp.int32)
+    duration = jnp.where(jnp.any(goal != joints, axis=-1), _move_steps(joints, goal), 0).max()
+    duration = jnp.full(NUM_ARMS, duration)
     return ControllerState(
-        phase=zeros, phase_step=zeros, duration=zeros + 1, start=joints, goal=joints,
+        phase=zeros + RISE, phase_step=zeros, duration=duration, start=joints, goal=goal,
         command=Commands(joints, jnp.zeros(NUM_ARMS, jnp.float32), jnp.zeros(NUM_ARMS, bool), jnp.zeros(NUM_ARMS, bool)),
         prev_joints=joints, prev_target_pos=frames.ee_pos, prev_target_quat=frames.ee_quat,
         step=jnp.int32(0), ended=jnp.bool_(False), success=jnp.bool_(False), cause=jnp.int32(NONE),
@@ -150,14 +158,6 @@ def initial_state(plan: RunPlan) -> ControllerState:
 def _move_steps(start, goal):
     speed = SCRIPTED_SPEED * jnp.asarray(load_arm().velocity_limit, jnp.float32) * CONTROL_PERIOD
     return jnp.maximum(SCRIPTED_STEPS, jnp.ceil(jnp.max(jnp.abs(goal - start) / speed, axis=-1))).astype(jnp.int32)
-
-
-def lifted_joints(joints, dz):
-    """[4, 6] joint angles that move each arm's ee_link by ``dz`` (m; one number, or [4] one
-    per arm) vertically, orientation kept."""
-    frames = forward_kinematics(load_arm(), jnp.zeros(3), jnp.array([1.0, 0.0, 0.0, 0.0]), joints)
-    up = jnp.zeros_like(frames.ee_pos).at[..., 2].set(dz)
-    return solve_poses(load_arm(), frames.ee_pos + up, frames.ee_quat, joints, iterations=40)[0]
 
 
 def _policy_phase(phase):
