@@ -1,7 +1,7 @@
 """The paper's application: four UR5 arms pick objects off the floor into a central bin.
 
     python -m eval.pickplace --runs 500 --seed 1000 --out results/pickplace --json
-    python -m eval.pickplace --runs 64 --backend mjx --batch 64      # MJX: one jitted batch
+    python -m eval.pickplace --runs 64 --backend mjx --batch 64      # MJX: jitted batches (CPU: of 4)
     python -m eval.pickplace --runs 20 --render 2                    # PNG frames (+ MP4) of 2 runs
     python -m eval.pickplace --runs 500 --seed 1000 --safe           # the policy's team steps shielded
     python -m eval.pickplace --runs 500 --approach-height 0 --start-height 0   # the original protocol
@@ -9,7 +9,7 @@
 Every arm runs the protocol of :mod:`mjx_multiarm.pickplace.protocol` with the shared
 reaching policy (default: the shipped one) under MuJoCo physics: MuJoCo C (default; runs in
 lockstep batches spread over ``--workers`` processes) or MJX (``--batch`` runs per jitted
-call). Run r of seed S draws its objects and initial configuration from ``(S, r)``, so a seed
+call; at most 4 on the CPU backend, see :data:`~mjx_multiarm.pickplace.backends.MJX_CPU_BATCH`). Run r of seed S draws its objects and initial configuration from ``(S, r)``, so a seed
 picks the same runs on either backend.
 
 Outcomes. ``success``: every arm finished its sequence with no collision under the

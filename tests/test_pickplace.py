@@ -184,6 +184,26 @@ def test_timeouts_and_collisions_end_runs(scene):
     assert results[1].cause == "timeout" and results[1].control_steps == 20
 
 
+def test_mjx_runs_in_batches_of_at_most_four_on_cpu(scene, monkeypatch):
+    """On the CPU backend MJX batches of 8 runs hang in XLA's runtime (jaxlib 0.10.2), so
+    ``run_mjx`` splits the runs into batches of 4, padding the last with its last run."""
+    assert jax.default_backend() == "cpu"
+    batches = []
+
+    def fake_batch(scene, policy_step, plans, max_control_steps, chunk):
+        batches.append(np.asarray(plans.objects)[:, 0].tolist())
+        return [int(o) for o in np.asarray(plans.objects)[:, 0]]
+
+    monkeypatch.setattr(backends, "_run_mjx_batch", fake_batch)
+    six = plans.plan_runs(scene, 1000, 6, objects=["cube"] * NUM_ARMS)
+    six = six.replace(objects=np.arange(6, dtype=np.int32)[:, None].repeat(NUM_ARMS, axis=1))  # run r holds object r
+    assert backends.run_mjx(scene, None, six, max_control_steps=5) == [0, 1, 2, 3, 4, 5]
+    assert batches == [[0, 1, 2, 3], [4, 5, 5, 5]]
+    batches.clear()
+    assert backends.run_mjx(scene, None, jax.tree.map(lambda x: x[:2], six), max_control_steps=5) == [0, 1]
+    assert batches == [[0, 1]]
+
+
 @pytest.mark.slow
 def test_mjx_backend_agrees_with_mujoco(scene):
     """The same two runs on both backends: the same outcomes, objects within 5 mm."""

@@ -237,11 +237,30 @@ def _sense_mjx(scene: PickPlaceScene, d, touched) -> Sensors:
                    object_pos=d.xpos[jnp.asarray(scene.object_body)].astype(jnp.float32), contacts=touched)
 
 
+#: Runs per jitted MJX call on the CPU backend: with jaxlib 0.10.2, batches of 8 runs hang
+#: after compiling (every XLA CPU worker waits for work; benchmarks/RESULTS.md), 1-4 run.
+MJX_CPU_BATCH = 4
+
+
 def run_mjx(scene: PickPlaceScene, policy_step, plans: RunPlan, max_control_steps: int = MAX_CONTROL_STEPS,
             chunk: int = 20) -> list[RunResult]:
-    """Run every plan of ``plans`` (leading dim = runs) as one MJX batch from the settled
-    MuJoCo C states; the host checks between chunks of ``chunk`` control steps whether every
-    run has ended."""
+    """Run every plan of ``plans`` (leading dim = runs) on MJX from the settled MuJoCo C
+    states, as one batch (on the CPU backend: batches of :data:`MJX_CPU_BATCH` runs, the
+    last one padded); the host checks between chunks of ``chunk`` control steps whether
+    every run has ended."""
+    runs = len(plans.objects)
+    size = min(MJX_CPU_BATCH, runs) if jax.default_backend() == "cpu" else runs
+    results = []
+    for first in range(0, runs, size):
+        rows = np.minimum(np.arange(first, first + size), runs - 1)  # the last batch repeats its last run
+        batch = jax.tree.map(lambda x, rows=rows: x[rows], plans)
+        results += _run_mjx_batch(scene, policy_step, batch, max_control_steps, chunk)[:runs - first]
+    return results
+
+
+def _run_mjx_batch(scene: PickPlaceScene, policy_step, plans: RunPlan, max_control_steps: int,
+                   chunk: int) -> list[RunResult]:
+    """One jitted MJX batch of runs."""
     runs = len(plans.objects)
     start = time.perf_counter()
     models, datas = _settled(scene, plans)
