@@ -2,11 +2,13 @@
 
 Each measurement runs a batch of pick-and-place runs (held-out plans of ``--seed``) for
 ``--steps`` control steps of 12 physics steps each (1/240 s), with the shipped policy, on
-MuJoCo C (one process, the runs in lockstep) or MJX (one jitted ``vmap`` over the batch).
+MuJoCo C (one process, the runs in lockstep) or MJX (jitted ``vmap`` over the batch; on the
+CPU backend in calls of at most 4 runs).
 Each backend is timed twice on the same batch: the first call compiles (the controller and
 policy; on MJX also the physics), the second is the steady state, which also includes
-settling every run's start on MuJoCo C (120 physics steps, both backends). Physics steps/s counts the steps of runs still going (a run that ended early stops
-counting; MJX still computes it, masked); ``computed`` counts every slot of the batch.
+settling every run's start on MuJoCo C (120 physics steps, both backends). Physics steps/s
+counts the steps of runs still going (a run that ended early stops counting; MJX still
+computes it, masked); ``computed`` counts every slot of the batch.
 
     python benchmarks/pickplace_throughput.py --backend mujoco,mjx --batch 1,4,16 --steps 40
     python benchmarks/pickplace_throughput.py --backend mjx --batch 500 --steps 100 --json   # GPU

@@ -9,8 +9,9 @@
 Every arm runs the protocol of :mod:`mjx_multiarm.pickplace.protocol` with the shared
 reaching policy (default: the shipped one) under MuJoCo physics: MuJoCo C (default; runs in
 lockstep batches spread over ``--workers`` processes) or MJX (``--batch`` runs per jitted
-call; at most 4 on the CPU backend, see :data:`~mjx_multiarm.pickplace.backends.MJX_CPU_BATCH`). Run r of seed S draws its objects and initial configuration from ``(S, r)``, so a seed
-picks the same runs on either backend.
+call; at most 4 on the CPU backend, see :data:`~mjx_multiarm.pickplace.backends.MJX_CPU_BATCH`).
+Run r of seed S draws its objects and initial configuration from ``(S, r)``, so a seed picks
+the same runs on either backend.
 
 Outcomes. ``success``: every arm finished its sequence with no collision under the
 original's rule (an arm in a policy phase touching another arm, the floor, the bin or an
@@ -238,7 +239,8 @@ def main(argv=None) -> None:
         result["objects"] = [scene.object_names[o] for o in np.asarray(plans.objects[r])]
     summary = summarize(results, wall)
     settings = {"backend": args.backend, "seed": args.seed, "runs": args.runs, "workers": args.workers,
-                "batch": args.batch, "max_steps": args.max_steps, "approach_height": args.approach_height, "start_height": args.start_height, "safe": args.safe, "checkpoint": str(args.checkpoint or "shipped"),
+                "batch": args.batch, "max_steps": args.max_steps, "approach_height": args.approach_height,
+                "start_height": args.start_height, "safe": args.safe, "checkpoint": str(args.checkpoint or "shipped"),
                 "planning_seconds": planning}
     _write_runs_csv(out / "runs.csv", results)
     text = json.dumps({"settings": settings, "summary": summary, "paper": PAPER}, indent=1)

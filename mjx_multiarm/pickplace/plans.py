@@ -94,6 +94,13 @@ def spawn_candidates(scene: PickPlaceScene, arm: int, obj: int) -> np.ndarray:
     return np.array(poses)
 
 
+@functools.cache
+def _base_poses() -> np.ndarray:
+    """[4, 7] the arms' base poses as :func:`~mjx_multiarm.geometry.evaluate.evaluate_arms`
+    takes them (position, xyzw)."""
+    return np.concatenate([BASE_POS, np.asarray(wxyz_to_xyzw(BASE_QUAT))], 1)
+
+
 def _padded(fn, *arrays):
     """``fn`` on ``arrays`` padded (first rows repeated) to a multiple of :data:`ROWS` rows."""
     n = len(arrays[0])
@@ -146,8 +153,7 @@ def _ik(arms, pos, quat, seeds: np.ndarray):
 
 def _clear(arms: np.ndarray, joints: np.ndarray) -> np.ndarray:
     """[N] each arm alone at ``joints`` touches neither itself nor the ground."""
-    base = np.concatenate([BASE_POS[arms], np.asarray(wxyz_to_xyzw(BASE_QUAT[arms]))], 1)[:, None]
-    return ~_padded(lambda b, q: (evaluate_arms(b, q).collided,), base, joints[:, None])[0][:, 0]
+    return ~_padded(lambda b, q: (evaluate_arms(b, q).collided,), _base_poses()[arms][:, None], joints[:, None])[0][:, 0]
 
 
 def _finger_bottom(pos, quat) -> np.ndarray:
@@ -239,8 +245,7 @@ def rise_joints(init_joints: np.ndarray, start_height: float) -> np.ndarray:
     dz = np.maximum(start_height - ee_z, 0.0)
     lifted = np.asarray(lifted_joints(init, jnp.asarray(dz, jnp.float32)), np.float64)
     reached = np.asarray(forward_kinematics(load_arm(), BASE_POS, BASE_QUAT, jnp.asarray(lifted, jnp.float32)).ee_pos[..., 2])
-    base = np.concatenate([BASE_POS, np.asarray(wxyz_to_xyzw(BASE_QUAT))], 1)
-    free = np.array([~evaluate_arms(base, q).collided for q in lifted])
+    free = ~evaluate_arms(np.broadcast_to(_base_poses(), (*lifted.shape[:-2], NUM_ARMS, 7)), lifted).collided
     ok = (np.abs(reached - ee_z - dz) < 0.01) & free & (dz > 0)
     return np.where(ok[..., None], lifted, init_joints)
 
@@ -266,10 +271,9 @@ def sample_initial_joints(rng: np.random.Generator, clear=None, max_tries: int =
     every end effector above 0.2 m (the original's rule). The arms are checked against each
     other by the collision model; ``clear(joints) -> bool`` (if given) checks the rest of
     the scene, as the original checks every arm with its gripper against every other body."""
-    base = np.concatenate([BASE_POS, np.asarray(wxyz_to_xyzw(BASE_QUAT))], 1)
     for _ in range(max_tries):
         joints = load_arm().home + rng.uniform(-INIT_NOISE, INIT_NOISE, (NUM_ARMS, 6))
-        at = evaluate_arms(base, joints)
+        at = evaluate_arms(_base_poses(), joints)
         if (not at.collided.any() and (at.ee_pos[:, 2] > INIT_MIN_EE_HEIGHT).all()
                 and (clear is None or clear(joints))):
             return joints
