@@ -5,18 +5,22 @@ fixed random batch of ``--batch`` observation sequences of 1, 2, 4, 10 elements 
 element observed), compile excluded; prints ms per update and the losses of the first
 update on that batch (the same numbers before and after a change that keeps the math).
 
-Iterations: :class:`train.trainer.Trainer` iterations of the ``cpu`` preset's sizes (64
-environments x 16 steps, 16 updates of batch 256, one hindsight copy; no experts, so no
-planning) on generated tasks of each ``--teams`` entry (``2``: two-arm tasks in two slots;
-``1-4``: 1-4-arm tasks in four slots), past the warm-up; prints env steps/s and updates/s.
+Iterations: :class:`train.trainer.Trainer` iterations of a preset's environment and
+training settings (``--preset``, default ``cpu``: 64 environments x 16 steps, 16 updates of
+batch 256, one hindsight copy) without experts (so no planning, no expert share of the
+batches and no behaviour cloning of them) on generated tasks of each ``--teams`` entry
+(``2``: two-arm tasks in two slots; ``1-4``: 1-4-arm tasks in four slots), past the
+warm-up; prints env steps/s and updates/s.
 
     python benchmarks/update_cost.py                      # both parts
     python benchmarks/update_cost.py --elements 4 --teams 1-4 --json
+    python benchmarks/update_cost.py --elements '' --teams 1-4 --preset team
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 
@@ -27,12 +31,13 @@ from common import cpu_name
 
 from mjx_multiarm.cli import parse_arms
 from mjx_multiarm.env.observation import ELEMENT_SIZE
-from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
+from mjx_multiarm.env.reaching import ReachingEnv
 from mjx_multiarm.env.wrappers import TaskBank
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
 from train.agent import SACConfig, bc_update, create_agent, sac_update
+from train.config import PRESETS
 from train.replay import Transitions
-from train.trainer import TrainConfig, Trainer
+from train.trainer import Trainer
 
 
 def fixed_batch(size: int, elements: int, seed: int = 0) -> Transitions:
@@ -63,13 +68,14 @@ def time_updates(kind: str, batch: Transitions, updates: int, repeats: int = 3) 
     return 1e3 * float(np.median(times)) / updates, {k: float(v[0]) for k, v in first.items()}
 
 
-def time_iterations(teams: tuple[int, ...], iterations: int) -> dict:
-    """Env steps/s and updates/s of training iterations (cpu preset sizes) on ``teams`` tasks."""
+def time_iterations(teams: tuple[int, ...], iterations: int, preset: str = "cpu") -> dict:
+    """Env steps/s and updates/s of training iterations (``preset``'s settings, no experts)
+    on ``teams`` tasks."""
     slots = max(teams)
     spec = GenerationSpec(count=256, arm_counts=teams, mode="static", seed=0, max_arms=slots, chunk_size=256)
-    env = ReachingEnv(slots, EnvConfig(max_steps=200))
-    config = TrainConfig(num_envs=64, rollout_steps=16, updates_per_iteration=16, batch_size=256, buffer_size=50_000, warmup=2_000,
-                         expert=False, hindsight=1, sac=SACConfig(policy_average=5e-4))
+    run = PRESETS[preset]
+    env = ReachingEnv(slots, run.env)
+    config = dataclasses.replace(run.train, expert=False, expert_share=0.0, sac=dataclasses.replace(run.train.sac, expert_bc=0.0))
     trainer = Trainer(env, TaskBank.from_tasks(generate_chunk(spec, 0), slots), None, config)
     state = trainer.init(jax.random.key(0))
     while int(state.buffer.size) < config.warmup:  # compile, fill past the warm-up
@@ -88,6 +94,7 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=20, help="updates per timed call")
     parser.add_argument("--teams", default="1,2,4,1-4", help="comma-separated team-size entries of iteration benchmarks, e.g. 1,2,4,1-4 ('' to skip)")
     parser.add_argument("--iterations", type=int, default=10, help="timed training iterations per entry")
+    parser.add_argument("--preset", choices=sorted(PRESETS), default="cpu", help="settings of the iteration benchmarks")
     parser.add_argument("--json", action="store_true", help="one JSON line per measurement")
     args = parser.parse_args()
     print(f"device: {jax.devices()[0].device_kind} ({cpu_name()})")
@@ -100,10 +107,11 @@ def main() -> None:
             if args.json:
                 print(json.dumps({"kind": kind, "elements": elements, "batch": args.batch, "ms_per_update": ms, "first_update": losses}))
     for entry in [t for t in args.teams.split(",") if t]:
-        rates = time_iterations(parse_arms(entry), args.iterations)
-        print(f"training iterations, {entry} arm tasks: {rates['env_steps_per_s']:,.0f} env steps/s, {rates['updates_per_s']:.1f} updates/s")
+        rates = time_iterations(parse_arms(entry), args.iterations, args.preset)
+        print(f"training iterations ({args.preset}), {entry} arm tasks: {rates['env_steps_per_s']:,.0f} env steps/s, "
+              f"{rates['updates_per_s']:.1f} updates/s")
         if args.json:
-            print(json.dumps({"teams": entry, **rates}))
+            print(json.dumps({"teams": entry, "preset": args.preset, **rates}))
 
 
 if __name__ == "__main__":

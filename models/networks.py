@@ -35,6 +35,9 @@ MLP_LAYERS = (128, 64)
 #: The original's bounds on the action variance.
 VARIANCE_BOUNDS = (1e-8, 0.1)
 LOG_STD_BOUNDS = (-20.0, 2.0)
+#: Up to this many sequences (a planner step: one per arm) the LSTM's input projections of
+#: all elements are one matrix product; more (training batches) take one product per element.
+FEW_SEQUENCES = 16
 
 
 class ElementFeatures(Protocol):
@@ -61,10 +64,16 @@ class SequenceEncoder(nnx.Module):
         self.cell = nnx.OptimizedLSTMCell(inputs.size, hidden, rngs=rngs)
 
     def __call__(self, obs, mask):
-        obs = self.inputs(obs)
         cell, carry = self.cell, None  # None: the zero state, untouched so far
+        inputs = self.inputs(obs)
+        if math.prod(obs.shape[:-2]) <= FEW_SEQUENCES:
+            # Every element's input projection in one matrix product: the weights are read
+            # once, not once per element (most of a planner step's forward pass).
+            projected = cell.dense_i(jnp.moveaxis(inputs, -2, 0))
+        else:  # per element: faster for training batches on XLA CPU (benchmarks/RESULTS.md)
+            projected = [cell.dense_i(inputs[..., t, :]) for t in range(obs.shape[-2])]
         for t in range(obs.shape[-2]):  # short sequences (max_arms): unrolled
-            gates = cell.dense_i(obs[..., t, :])
+            gates = projected[t]
             # From the zero state the hidden projection is its bias alone: skipping that
             # matmul at the first element changes no number and saves 18 % of the FLOPs of
             # a 4-element encoding, 70 % of a 1-element one.

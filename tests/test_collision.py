@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import importlib
+import json
+import pathlib
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -222,3 +226,16 @@ def test_planar_rigid_motion_of_the_whole_scene_changes_nothing(dx, dy, yaw, see
     np.testing.assert_array_equal(a.collided, b.collided)
     for field in ("distance_between_arms", "distance_within_arm", "distance_ground"):
         np.testing.assert_allclose(getattr(b, field), getattr(a, field), atol=1e-5, err_msg=field)
+
+
+def test_verdicts_match_the_recorded_reference(monkeypatch, capsys):
+    """The first 2,000 of the 100,000 random scenes recorded by benchmarks/collision_verdicts.py
+    give the recorded verdicts, arm by arm, and the numba checker's: a kernel change that
+    keeps the collision model changes no verdict."""
+    benchmarks = pathlib.Path(__file__).parents[1] / "benchmarks"
+    monkeypatch.syspath_prepend(str(benchmarks))
+    verdicts = importlib.import_module("collision_verdicts")
+    verdicts.main(["--scenes", "2000", "--reference", str(benchmarks / "collision_verdicts_100k.npz"), "--json"])
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["differ_from_reference"] == 0 and result["differ_from_checker"] == 0, result
+    assert 0.2 < result["collided_arms"] / result["arms"] < 0.8
