@@ -244,9 +244,8 @@ def rise_joints(init_joints: np.ndarray, start_height: float) -> np.ndarray:
     ee_z = np.asarray(forward_kinematics(load_arm(), BASE_POS, BASE_QUAT, init).ee_pos[..., 2])
     dz = np.maximum(start_height - ee_z, 0.0)
     lifted = np.asarray(lifted_joints(init, jnp.asarray(dz, jnp.float32)), np.float64)
-    reached = np.asarray(forward_kinematics(load_arm(), BASE_POS, BASE_QUAT, jnp.asarray(lifted, jnp.float32)).ee_pos[..., 2])
-    free = ~evaluate_arms(np.broadcast_to(_base_poses(), (*lifted.shape[:-2], NUM_ARMS, 7)), lifted).collided
-    ok = (np.abs(reached - ee_z - dz) < 0.01) & free & (dz > 0)
+    at = evaluate_arms(np.broadcast_to(_base_poses(), (*lifted.shape[:-2], NUM_ARMS, 7)), lifted)
+    ok = (np.abs(at.ee_pos[..., 2] - ee_z - dz) < 0.01) & ~at.collided & (dz > 0)
     return np.where(ok[..., None], lifted, init_joints)
 
 
