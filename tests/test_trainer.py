@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import pathlib
 import subprocess
 import sys
+import tempfile
 
 import jax
 import jax.numpy as jnp
@@ -19,9 +22,10 @@ from mjx_multiarm.expert.store import ExpertStore, ExpertTable, save_experts
 from mjx_multiarm.tasks.types import take, with_slots
 from train.agent import SACConfig
 from train.curriculum import LEVELS
+from train.relabel import CollisionRelabeller
 from train.trainer import (
     Demonstrations,
-    FailedQueue,
+    Queue,
     TrainConfig,
     Trainer,
     hindsight_transitions,
@@ -140,14 +144,59 @@ def test_inconsistent_train_configs_are_rejected(overrides, message):
         TrainConfig(**{k: SACConfig(**v) if k == "sac" else v for k, v in overrides.items()})
 
 
-def test_failed_queue_is_a_bounded_fifo():
-    queue = FailedQueue.create(4)
+def test_queue_is_a_bounded_fifo_of_pytrees():
+    queue = Queue.create(4)
     queue = queue.push(np.array([True, False, True]), np.array([7, 8, 9]))
     queue, rows, valid = queue.pop(3)
     assert rows[valid].tolist() == [7, 9] and int(queue.count) == 0
     queue = queue.push(np.ones(6, bool), np.arange(6))  # overflow keeps the newest four
     queue, rows, valid = queue.pop(4)
     assert rows[valid].tolist() == [2, 3, 4, 5]
+    pairs = Queue.create(3, (jnp.zeros((), jnp.int32), jnp.zeros((2, 6))))
+    pairs = pairs.push(np.array([False, True]), (np.array([1, 2]), np.stack([np.zeros((2, 6)), np.ones((2, 6))])))
+    _, (rows, joints), valid = pairs.pop(2)
+    assert valid.tolist() == [True, False] and int(rows[0]) == 2 and np.all(joints[0] == 1)
+
+
+def test_collision_states_are_queued_and_relabelled_with_plans(generated):
+    """Every step where a team collides queues its joints before the step; the relabeller plans
+    BiRRT from a queued state to the goal configuration, and the next iteration replays the
+    plan from that state as expert transitions."""
+    rows = np.flatnonzero(generated.num_arms == 2)[:2]
+    tasks = with_slots(take(generated, rows), 2)
+    base_pos = tasks.base_pos.copy()
+    base_pos[0, 1] = base_pos[0, 0] + 0.05  # task 0: the arms stand inside each other, every step collides
+    tasks = dataclasses.replace(tasks, base_pos=base_pos)
+    env = ReachingEnv(2, EnvConfig(max_steps=50, end_on_collision=False))
+    bank = TaskBank.from_tasks(tasks, 2)
+    path = pathlib.Path(tempfile.mkdtemp()) / "two.experts"
+    save_experts(path, ExpertTable.from_results([solve_task(tasks, i) for i in range(2)]))
+    config = TrainConfig(num_envs=2, rollout_steps=3, updates_per_iteration=1, batch_size=8, buffer_size=2048, warmup=10**6,
+                         expert_replays=1, curriculum=False, relabel=2, relabel_queue=8, expert_share=0.25, expert_buffer=2048)
+    trainer = Trainer(env, bank, Demonstrations.from_store(ExpertStore(path), bank, env, 48), config)
+    relabeller = CollisionRelabeller(trainer)
+    state = trainer.init(jax.random.key(0))
+    state, metrics = trainer.iteration(state, relabeller.empty())  # one compiled iteration for both calls
+    rows_queued, joints_queued = jax.device_get(state.collisions.items)
+    count = int(state.collisions.count)
+    assert count >= 3 and int(metrics["queued_collisions"]) == count  # task 0's env: three colliding steps
+    assert np.all(rows_queued[:count] == 0)
+    np.testing.assert_allclose(joints_queued[:count], np.broadcast_to(tasks.start_joints[0], (count, 2, 6)), atol=1e-6)
+
+    start = np.asarray(tasks.start_joints[1], np.float32)
+    state = state.replace(collisions=Queue.create(8, (jnp.zeros((), jnp.int32), jnp.zeros((2, 6))))
+                          .push(np.ones(2, bool), (np.array([1, 0]), np.stack([start, tasks.start_joints[0]]))))
+    state, batch, stats = relabeller(state, iteration=1)
+    assert stats["relabel_planned"] == 2 and stats["relabel_solved"] == 1  # task 0's state collides: no plan
+    assert int(state.collisions.count) == 0 and batch.rows[0] == 1 and batch.lengths[0] > 0 and batch.lengths[1] == 0
+    before = int(state.expert_buffer.inserted)
+    state, _ = trainer.iteration(state, batch)
+    replayed = int(state.expert_buffer.inserted) - before
+    assert replayed >= 2 * int(batch.lengths[0])  # both arms of every planned step (plus any failed-task replay)
+    first = jax.tree.map(lambda x: x[before : before + 2], state.expert_buffer.data)
+    reset = env.reset(None, bank.take(1).replace(start_joints=jnp.asarray(start)))
+    np.testing.assert_allclose(first.obs, reset.obs, atol=1e-5)
+    np.testing.assert_allclose(first.action, batch.actions[0, 0], atol=1e-6)
 
 
 SHARDED = """

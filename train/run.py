@@ -43,6 +43,7 @@ from train.config import RunConfig
 from train.data import prepare
 from train.evaluation import evaluate_policy, policy_evaluator
 from train.plots import plot_learning_curve
+from train.relabel import CollisionRelabeller
 from train.trainer import Trainer
 
 CONFIG_FILE = "config.json"
@@ -196,10 +197,14 @@ def train(config: RunConfig, run_dir: str | os.PathLike, *, resume: bool = False
                     {"run_dir": str(run_dir), "config": to_dict(config), **meta}, inputs=config.train.sac.inputs)
         _write_metrics(metrics_file, rows)
 
+    relabeller = CollisionRelabeller(trainer, config.seed) if config.train.relabel else None
     first = True
     while int(state.env_steps) < budget.steps and elapsed < budget_s:
         clock = time.perf_counter()
-        state, metrics = trainer.iteration(state)
+        relabelled, relabel_stats = None, {}
+        if relabeller is not None:
+            state, relabelled, relabel_stats = relabeller(state, iteration)
+        state, metrics = trainer.iteration(state, relabelled)
         metrics = jax.device_get(metrics)
         iteration += 1
         if first:  # the first call compiles: keep it out of the training clock
@@ -208,7 +213,7 @@ def train(config: RunConfig, run_dir: str | os.PathLike, *, resume: bool = False
         elapsed = time.perf_counter() - start_clock
         steps = int(state.env_steps)
         row = {"iteration": iteration, "env_steps": steps, "updates": int(state.agent.updates), "seconds": round(elapsed, 3),
-               **_iteration_columns(metrics)}
+               **_iteration_columns(metrics), **relabel_stats}
         if elapsed >= next_eval:
             clock = time.perf_counter()
             row.update(_heldout_columns(heldout(state.agent.average_actor)))

@@ -16,6 +16,11 @@ One call of :meth:`Trainer.iteration` (compiled once) does, in the style of Brax
 5. ``updates_per_iteration`` SAC updates on uniform batches from the buffer once it holds
    ``warmup`` transitions (behaviour cloning on expert transitions only with ``bc=True``).
 
+With ``relabel`` = N > 0 (beyond the paper; DAgger-style, Ross et al. 2011) every step
+where a team collided queues the team's joints before that step; between iterations up to N
+of them are planned by BiRRT to the task's goal configuration (:mod:`train.relabel`) and
+the next iteration replays the plans from those states as expert demonstrations.
+
 Options beyond the paper: ``curriculum_by_team`` gives every team size its own curriculum
 level (:class:`~train.curriculum.GroupedCurriculum`); ``expert_share`` = f > 0 keeps the
 expert transitions in a buffer of their own (``expert_buffer`` rows) and draws a fixed
@@ -74,11 +79,16 @@ class TrainConfig:
     expert_buffer: int = option(50_000, "rows of the expert buffer of --expert-share", flag="expert_buffer_size")
     expert_prefill: int = option(0, "replay the experts of this many random training tasks into the buffer before the "
                                     "first iteration (0: none, as the original)")
+    relabel: int = option(0, "expert relabelling of collisions (DAgger-style, beyond the paper): every iteration up to N "
+                             "states where a team collided are planned by BiRRT from the step before the collision to the "
+                             "task's goal configuration, and the plans are replayed as demonstrations (0: off)")
+    relabel_queue: int = option(256, "collision states waiting for --relabel")
+    relabel_seconds: float = option(0.5, "BiRRT time cap (s) of one --relabel plan")
     sac: SACConfig = SACConfig()
 
     def __post_init__(self):
         for name in ("num_envs", "rollout_steps", "updates_per_iteration", "batch_size", "buffer_size", "expert_replays", "expert_steps",
-                     "failed_queue"):
+                     "failed_queue", "relabel_queue"):
             if getattr(self, name) < 1:
                 raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.bc and not self.expert:
@@ -101,6 +111,10 @@ class TrainConfig:
             raise ValueError("expert_prefill replays expert demonstrations: it needs expert=True and bc=False")
         if self.sac.bc_start and (self.bc or not self.expert):
             raise ValueError("bc_start clones expert transitions before SAC: it needs expert=True and bc=False")
+        if self.relabel < 0 or not self.relabel_seconds > 0:
+            raise ValueError(f"TrainConfig.relabel must be >= 0 and relabel_seconds > 0, got {self.relabel}, {self.relabel_seconds}")
+        if self.relabel and (self.bc or not self.expert):
+            raise ValueError("relabel replays planned demonstrations beside the policy's transitions: it needs expert=True and bc=False")
         if self.sac.expert_bc and (self.bc or not self.expert):
             raise ValueError("expert_bc adds behaviour cloning of expert demonstrations to SAC: it needs expert=True and bc=False")
 
@@ -144,31 +158,50 @@ class Demonstrations:
 
 
 @struct.dataclass
-class FailedQueue:
-    """A ring of bank rows of failed tasks waiting for their expert replay."""
+class Queue:
+    """A bounded FIFO ring of items (a pytree of [size, ...] arrays): failed tasks waiting
+    for their expert replay, collision states waiting for their relabelling plan."""
 
-    rows: jnp.ndarray
+    items: object
     head: jnp.ndarray
     count: jnp.ndarray
 
     @classmethod
-    def create(cls, size: int) -> FailedQueue:
+    def create(cls, size: int, like=None) -> Queue:
+        """An empty queue of ``size`` items shaped like ``like`` (default: one int32 row index)."""
         zero = jnp.zeros((), jnp.int32)
-        return cls(jnp.zeros(size, jnp.int32), zero, zero)
+        like = zero if like is None else like
+        return cls(jax.tree.map(lambda x: jnp.zeros((size, *jnp.shape(x)), jnp.asarray(x).dtype), like), zero, zero)
 
-    def push(self, flags, rows) -> FailedQueue:
-        """Append ``rows`` [B] where ``flags`` [B]; the oldest entries are overwritten when full."""
-        size = self.rows.shape[0]
-        queued, new = ring_write(self.rows, rows, flags, self.head + self.count)
-        overflow = jnp.maximum(self.count + new - size, 0)
-        return FailedQueue(queued, (self.head + overflow) % size, jnp.minimum(self.count + new, size))
+    @property
+    def size(self) -> int:
+        return jax.tree.leaves(self.items)[0].shape[0]
 
-    def pop(self, n: int) -> tuple[FailedQueue, jnp.ndarray, jnp.ndarray]:
-        """(queue, rows [n], valid [n]): the ``n`` oldest entries (fewer may be valid)."""
-        size = self.rows.shape[0]
+    def push(self, flags, items) -> Queue:
+        """Append ``items`` [B, ...] where ``flags`` [B]; the oldest entries are overwritten when full."""
+        queued = jax.tree.map(lambda ring, new: ring_write(ring, new, flags, self.head + self.count)[0], self.items, items)
+        new = flags.astype(bool).sum().astype(jnp.int32)
+        overflow = jnp.maximum(self.count + new - self.size, 0)
+        return Queue(queued, (self.head + overflow) % self.size, jnp.minimum(self.count + new, self.size))
+
+    def pop(self, n: int) -> tuple[Queue, object, jnp.ndarray]:
+        """(queue, items [n, ...], valid [n]): the ``n`` oldest entries (fewer may be valid)."""
         take = jnp.minimum(self.count, n)
-        rows = self.rows[(self.head + jnp.arange(n)) % size]
-        return FailedQueue(self.rows, (self.head + take) % size, self.count - take), rows, jnp.arange(n) < take
+        index = (self.head + jnp.arange(n)) % self.size
+        items = jax.tree.map(lambda x: x[index], self.items)
+        return Queue(self.items, (self.head + take) % self.size, self.count - take), items, jnp.arange(n) < take
+
+
+@struct.dataclass
+class Relabelled:
+    """Demonstrations planned from collision states (:mod:`train.relabel`), replayed by the
+    next iteration: bank ``rows`` [R], their ``start`` joints [R, A, 6], ``actions``
+    [R, T, A, 6] and ``lengths`` [R] (0: nothing to replay)."""
+
+    rows: jnp.ndarray
+    start: jnp.ndarray
+    actions: jnp.ndarray
+    lengths: jnp.ndarray
 
 
 @struct.dataclass
@@ -180,7 +213,8 @@ class TrainState:
     buffer: ReplayBuffer
     expert_buffer: ReplayBuffer | None  # with TrainConfig.expert_share > 0
     curriculum: GroupedCurriculum
-    failed: FailedQueue
+    failed: Queue  # bank rows of failed tasks
+    collisions: Queue | None  # with TrainConfig.relabel: (bank row, joints [A, 6] before the colliding step)
     rng: jax.Array
     env_steps: jnp.ndarray
     expert_steps: jnp.ndarray
@@ -292,8 +326,13 @@ class Trainer:
         expert_buffer = ReplayBuffer.create(config.expert_buffer, self.env.max_arms) if config.expert_share else None
         zero = jnp.zeros((), jnp.int32)
         state = TrainState(create_agent(agent_key, config.sac), envs, buffer, expert_buffer, curriculum,
-                           FailedQueue.create(config.failed_queue), key, zero, zero)
+                           Queue.create(config.failed_queue), self._collision_queue(), key, zero, zero)
         return self.place(state)
+
+    def _collision_queue(self) -> Queue | None:
+        if not self.config.relabel:
+            return None
+        return Queue.create(self.config.relabel_queue, (jnp.zeros((), jnp.int32), jnp.zeros((self.env.max_arms, 6), jnp.float32)))
 
     def _rollout(self, state: TrainState, key) -> tuple[TrainState, dict]:
         config = self.config
@@ -312,6 +351,9 @@ class Trainer:
             if config.expert:
                 rows = stepped.task.task_id
                 failed = failed.push(ended & ~stepped.success & (self.demos.lengths[rows] > 0), rows)
+            collisions = state.collisions
+            if config.relabel:
+                collisions = collisions.push(stepped.collided.any(-1), (stepped.task.task_id, state.envs.env.joints))
             curriculum = state.curriculum
             if config.curriculum:
                 group = jnp.asarray(self.team_group)[stepped.task.active.sum(-1) - 1]
@@ -319,7 +361,7 @@ class Trainer:
                 envs = envs.replace(tolerance=self._tolerances(curriculum))
             active = stepped.task.active.sum(-1)
             trajectory = (state.envs.env, actions, stepped) if config.hindsight else None
-            state = state.replace(envs=envs, buffer=buffer, failed=failed, curriculum=curriculum,
+            state = state.replace(envs=envs, buffer=buffer, failed=failed, collisions=collisions, curriculum=curriculum,
                                   env_steps=state.env_steps + config.num_envs)
             return state, ({"ended": ended.sum(), "successes": (ended & stepped.success).sum(), "arm_steps": active.sum()}, trajectory)
 
@@ -357,11 +399,14 @@ class Trainer:
     def _replay(self, state: TrainState, rows, valid_task) -> TrainState:
         """``state`` with the experts of bank rows ``rows`` [R] (where ``valid_task``) replayed
         from their start and their transitions stored."""
-        tasks = self.bank.take(rows)
+        actions, lengths = self.demos.take(rows)
+        return self._replay_actions(state, self.bank.take(rows), actions, jnp.where(valid_task, lengths, 0))
+
+    def _replay_actions(self, state: TrainState, tasks, actions, lengths) -> TrainState:
+        """``state`` with ``actions`` [R, T, A, 6] (the first ``lengths`` [R] steps) replayed from
+        the start of ``tasks`` [R] and their transitions stored as expert transitions."""
         tolerance = state.envs.tolerance[tasks.active.sum(-1) - 1]
         start = jax.vmap(lambda task, tol: self.env.reset(None, task, tol))(tasks, tolerance)
-        actions, lengths = self.demos.take(rows)
-        lengths = jnp.where(valid_task, lengths, 0)
         states, valid = jax.vmap(lambda s, a, n: replay_actions(self.env, s, a, n))(start, actions, lengths)
         before_obs = jnp.concatenate([start.obs[:, None], states.obs[:, :-1]], axis=1)
         before_mask = jnp.concatenate([start.obs_mask[:, None], states.obs_mask[:, :-1]], axis=1)
@@ -425,11 +470,14 @@ class Trainer:
         agent, metrics = jax.lax.cond(state.buffer.size >= config.warmup, run, skip, state.agent)
         return state.replace(agent=agent), metrics
 
-    def _iteration(self, state: TrainState) -> tuple[TrainState, dict]:
+    def _iteration(self, state: TrainState, relabelled: Relabelled | None = None) -> tuple[TrainState, dict]:
         rng, rollout_key, update_key = jax.random.split(state.rng, 3)
         state, rollout = self._rollout(state.replace(rng=rng), rollout_key)
         if self.config.expert:
             state = self._expert_replays(state)
+        if relabelled is not None:
+            tasks = self.bank.take(relabelled.rows).replace(start_joints=relabelled.start)
+            state = self._replay_actions(state, tasks, relabelled.actions, relabelled.lengths)
         state, learning = self._updates(state, update_key)
         state = jax.lax.with_sharding_constraint(state, self._shardings(state))
         groups = jnp.asarray(self.groups_used)
@@ -439,4 +487,5 @@ class Trainer:
                         ((f"level_{team}", state.curriculum.level[team - 1]), (f"window_success_{team}", state.curriculum.success_rate[team - 1]))}
         return state, {**rollout, **learning, "level": self.level(state.curriculum),
                        "window_success": jnp.mean(state.curriculum.success_rate[groups]), **per_team,
-                       "buffer": state.buffer.size, "queued_failures": state.failed.count}
+                       "buffer": state.buffer.size, "queued_failures": state.failed.count,
+                       **({"queued_collisions": state.collisions.count} if self.config.relabel else {})}
