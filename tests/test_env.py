@@ -299,6 +299,24 @@ def test_restoring_colliding_arms_keeps_the_episode_going():
     assert float(contacts(jnp.asarray(joints, jnp.float32)).min()) >= 0
 
 
+def test_collisions_end_once_the_tolerance_reaches_the_threshold():
+    """collisions_end_at: restored collisions become the paper's rule (the episode ends at the
+    first colliding step, arms not put back) for episodes whose position tolerance is at most
+    the threshold, and stay restored for looser ones."""
+    bank = TaskBank.from_tasks(_facing_pair(), 2)
+    env = ReachingEnv(2, EnvConfig(max_steps=120, end_on_collision=False, collisions_end_at=0.02))
+    ending = ReachingEnv(2, EnvConfig(max_steps=120))
+    final, states, _ = rollout(env, 120)(bank.tasks, jnp.asarray([0.02, 0.1]))
+    expected, expected_states, _ = rollout(ending, 120)(bank.tasks, jnp.asarray([0.02, 0.1]))
+    assert bool(final.done[0]) and not bool(final.truncated[0]) and not bool(final.success[0])
+    assert int(final.step[0]) == int(expected.step[0]) < 120
+    np.testing.assert_array_equal(states.joints, expected_states.joints)
+    loose = rollout(env, 120)(bank.tasks, jnp.asarray([0.021, 0.1]))[0]
+    assert bool(loose.truncated[0]) and int(loose.step[0]) == 120  # restored: goes on to the step limit
+    with pytest.raises(ValueError, match="collisions_end_at must be >= 0 and needs end_on_collision=False"):
+        EnvConfig(collisions_end_at=0.02)
+
+
 @pytest.mark.slow
 def test_thin_obstacle_is_not_tunnelled_through_in_one_step():
     """Full-speed steps whose end points are both free but which pass through the other arm.

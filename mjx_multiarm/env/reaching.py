@@ -32,7 +32,10 @@ Rules (documented here once):
   ``EnvConfig.end_on_collision=False`` (a training option, as RoboBallet's) a collision
   does not end the episode: every arm that collided is put back where it was before the
   step (its last collision-free pose) and receives the ``collision`` reward; the others
-  keep their motion. Success still needs a step without any collision.
+  keep their motion. Success still needs a step without any collision. With
+  ``EnvConfig.collisions_end_at`` = t > 0 as well, collisions end the episodes whose
+  position tolerance is at most t (m), so a tolerance curriculum turns restoring into the
+  paper's rule once it reaches t.
 - With ``EnvConfig.safe`` (deployment, beyond the paper) the motion of a step is first
   shielded (:mod:`mjx_multiarm.env.shield`): arms whose motions would collide step away
   from the others or hold, so that a step never collides; its failures are timeouts.
@@ -114,6 +117,8 @@ class EnvConfig:
       sweep_resolution: largest joint motion (rad) between two collision checks of a step.
       end_on_collision: a collision ends the episode (the paper's rule, and evaluation's);
         False restores the colliding arms instead (module rules).
+      collisions_end_at: with ``end_on_collision`` False, collisions still end the episodes
+        whose position tolerance is at most this (m); 0: never (module rules).
       safe: every team step goes through :func:`mjx_multiarm.env.shield.shielded_joints`
         (collision-free execution; ``metrics["shielded"]`` marks the arms that stepped away
         or held instead of their proposed motion). Off for the paper's metric.
@@ -132,6 +137,8 @@ class EnvConfig:
     sweep_resolution: float = option(SWEEP_RESOLUTION, "largest joint motion (rad) between two collision checks of a step")
     end_on_collision: bool = option(True, "a collision ends the episode (the paper; evaluation always ends it); 0: the "
                                           "colliding arms are put back with the collision penalty and the episode goes on")
+    collisions_end_at: float = option(0.0, "with collisions restored: they end the episode once its position tolerance is at "
+                                           "most this (m; a curriculum reaches it), 0: never")
     safe: bool = option(False, "safe execution (deployment, beyond the paper): every team step is shielded so that it never "
                                "collides (mjx_multiarm.env.shield: colliding arms step away from the others or hold)")
 
@@ -151,6 +158,9 @@ class EnvConfig:
             raise ValueError(f"EnvConfig.shaping must be >= 0, got {self.shaping}")
         if len(self.tolerance) != 2 or not all(t > 0 for t in self.tolerance):
             raise ValueError(f"EnvConfig.tolerance must be (eps_p > 0, eps_r > 0), got {self.tolerance}")
+        if not self.collisions_end_at >= 0 or (self.collisions_end_at and self.end_on_collision):
+            raise ValueError(f"EnvConfig.collisions_end_at must be >= 0 and needs end_on_collision=False, got "
+                             f"{self.collisions_end_at} with end_on_collision={self.end_on_collision}")
         if not self.sweep_resolution > 0:
             raise ValueError(f"EnvConfig.sweep_resolution must be > 0, got {self.sweep_resolution}")
 
@@ -334,7 +344,7 @@ class ReachingEnv:
                                       self.substeps, end_frames=frames)
         collided = contacts.collided & task.active
         if not self.config.end_on_collision:  # training option: the colliding arms go back
-            joints = jnp.where(collided[:, None], state.joints, joints)
+            joints = jnp.where((collided & ~self._collisions_end(state.tolerance))[:, None], state.joints, joints)
             frames = self._pose(task, joints)
 
         step = state.step + 1
@@ -356,6 +366,10 @@ class ReachingEnv:
         finished = state.replace(reward=jnp.zeros_like(state.reward))
         return jax.tree.map(lambda old, new: jnp.where(state.done, old, new), finished, stepped)
 
+    def _collisions_end(self, tolerance) -> jnp.ndarray:
+        """Whether a collision ends an episode of ``tolerance`` (eps_p, eps_r) (module rules)."""
+        return jnp.asarray(self.config.end_on_collision) | (tolerance[0] <= self.config.collisions_end_at)
+
     def _outcome(self, task: Tasks, before: ArmSnapshot, arms: ArmSnapshot, collided, tolerance, step) -> dict:
         """The fields ``reached``, ``success``, ``reward``, ``done`` and ``truncated`` of a step
         from the arms at ``before`` to ``arms`` (see the module rules)."""
@@ -367,7 +381,7 @@ class ReachingEnv:
         if self.config.shaping:
             reward = reward + self._potential(arms) - self._potential(before)
         timeout = step >= self.config.max_steps
-        ends = any_collision if self.config.end_on_collision else jnp.zeros((), bool)
+        ends = any_collision & self._collisions_end(tolerance)
         return {"reached": reached, "success": success, "reward": jnp.where(task.active, reward, 0.0).astype(jnp.float32),
                 "done": success | ends | timeout, "truncated": timeout & ~success & ~ends}
 
