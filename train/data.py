@@ -77,7 +77,8 @@ def prepare(config: RunConfig, run_dir: pathlib.Path, workers: int, log=print) -
                                       config.seed + EVAL_SEED_OFFSET, workers)
     max_arms = max(int(tasks.num_arms.max()), int(eval_tasks.num_arms.max()))
     env = ReachingEnv(max_arms, config.env)
-    eval_env = ReachingEnv(max_arms, dataclasses.replace(config.env, tolerance=EVAL_TOLERANCE, end_on_collision=True))
+    eval_env = ReachingEnv(max_arms, dataclasses.replace(config.env, tolerance=EVAL_TOLERANCE, end_on_collision=True,
+                                                              collisions_end_at=0.0))
     bank = TaskBank.from_tasks(tasks, max_arms)
     demos = None
     if config.train.expert:
