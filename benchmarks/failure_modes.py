@@ -32,10 +32,16 @@ from mjx_multiarm.tasks.dataset import load_tasks
 from mjx_multiarm.tasks.types import take
 
 
-def clearance(env, tasks, joints) -> np.ndarray:
-    """[N] smallest distance (m) between the arms of each task at ``joints`` (inf for one arm)."""
-    contacts = jax.jit(jax.vmap(lambda *x: scene_contacts(env.scene, *x)))(tasks.base_pos, tasks.base_quat, joints, tasks.active)
-    return np.asarray(contacts.between_arms).min(axis=-1)
+def clearances(env, tasks) -> tuple[np.ndarray, np.ndarray]:
+    """[N] smallest distance (m) between the arms of each task at its start and at its goal
+    configuration (inf for one arm); one compiled check serves both."""
+    @jax.jit
+    @jax.vmap
+    def check(base_pos, base_quat, joints, active):
+        return scene_contacts(env.scene, base_pos, base_quat, joints, active).between_arms.min(-1)
+
+    return tuple(np.asarray(check(tasks.base_pos, tasks.base_quat, joints, tasks.active))
+                 for joints in (tasks.start_joints, tasks.goal_joints))
 
 
 def final_errors(planner: Planner, tasks, steps: int) -> dict:
@@ -47,7 +53,7 @@ def final_errors(planner: Planner, tasks, steps: int) -> dict:
     position = np.linalg.norm(final.arms.ee_pos - final.arms.target_pos, axis=-1)
     rotation = np.asarray(quat_angle(final.arms.ee_quat, final.arms.target_quat))
     collision = final.collided.any(axis=-1) & ~final.success
-    start, goal = clearance(env, bank.tasks, bank.tasks.start_joints), clearance(env, bank.tasks, bank.tasks.goal_joints)
+    start, goal = clearances(env, bank.tasks)
     kinds = {"timeout": ~final.success & ~collision, "collision": collision, "solved": final.success}
     report = {}
     for kind, rows in kinds.items():
