@@ -22,7 +22,7 @@ from mjx_multiarm import (
     scene_contacts,
     swept_contacts,
 )
-from mjx_multiarm.geometry.collision import frame_contacts
+from mjx_multiarm.geometry.collision import frame_contacts, geom_clearances
 from mjx_multiarm.geometry.evaluate import base_pose_arrays
 from mjx_multiarm.geometry.scene import build_scene, set_mujoco_state
 
@@ -101,6 +101,31 @@ def test_signed_distances_match_mj_geom_distance():
             np.testing.assert_array_equal(mine[k][finite] < 0, theirs[kind][finite] < 0, err_msg=f"scene {k} {kind}")
             worst = max(worst, np.abs(mine[k][apart] - theirs[kind][apart]).max(initial=0.0))
     print(f"per-arm smallest distances vs mj_geomDistance ({active.sum()} arms): max difference {worst:.2e} m")
+
+
+def test_geom_clearances_match_mj_geom_distance_per_geom():
+    """Per collision geom of one arm, its signed distance to another arm is the smallest
+    ``mj_geomDistance`` to that arm's geoms (apart: equal; penetrating: both negative)."""
+    rng = np.random.default_rng(2)
+    scene = build_scene(2)
+    data = mujoco.MjData(scene.mj_model)
+    bases, joints, active = random_padded_scenes(rng, 40, 2)
+    active[:] = True
+    pos, quat = base_pose_arrays(bases)
+    frames = forward_kinematics(scene.arm, pos, quat, joints)
+    ours = np.asarray(geom_clearances(scene, frames.capsules[:, 0], frames.boxes[:, 0], frames.capsules[:, 1], frames.boxes[:, 1]))
+    assert ours.shape == (40, len(scene.arm.geom_names))
+    m, geoms = scene.mj_model, scene.geoms
+    for k in range(len(bases)):
+        set_mujoco_state(scene, data, pos[k], quat[k], joints[k], active[k])
+        theirs = np.array([min(mujoco.mj_geomDistance(m, data, geoms[0, a], geoms[1, b], 100.0, None)
+                               for b in np.flatnonzero(scene.pairs.between_arms[a])) for a in range(geoms.shape[1])])
+        apart = theirs >= 0
+        np.testing.assert_allclose(ours[k][apart], theirs[apart], atol=1e-4, err_msg=f"scene {k}")
+        np.testing.assert_array_equal(ours[k] < 0, theirs < 0, err_msg=f"scene {k}")
+    between = np.asarray(_jax_contacts(scene, bases, joints, active).between_arms[:, 0])
+    np.testing.assert_allclose(ours.min(axis=1), between, atol=1e-6)  # the kernel's per-arm figure
+    assert 0 < (ours.min(axis=1) < 0).mean() < 1
 
 
 def _two_arms(joints_a, joints_b, distance=0.9):

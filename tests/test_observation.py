@@ -123,3 +123,50 @@ def test_nearness_features_are_the_link_point_distances_to_each_observed_arm(sce
     both = np.asarray(InputFeatures(goal=True, nearness=True)(obs))
     assert both.shape == (5, 5, 127) == (5, 5, InputFeatures(goal=True, nearness=True).size)
     np.testing.assert_array_equal(both[..., -14:], features)
+
+
+def test_clearance_features_are_each_own_geoms_exact_distance_to_each_observed_arm(scene):
+    """For every observer and every arm it sees: per own collision geom its signed distance
+    to that arm (capped, scaled), computed in the observer's frame from the observation,
+    equals the same computed in the world frame from the true joints; then how much each
+    closed since t-1; the observer's own element reads as far; padding stays finite."""
+    from mjx_multiarm.env.observation import (
+        CLEARANCE_CAP,
+        CLEARANCE_SCALE,
+        CLOSING_SCALE,
+        InputFeatures,
+        clearance_features,
+    )
+    from mjx_multiarm.geometry.collision import geom_clearances
+    from mjx_multiarm.geometry.scene import build_scene
+
+    bases, joints, previous, targets = scene
+    pos, quat, now = _snapshot(bases, joints, targets)
+    _, _, before = _snapshot(bases, previous, targets)
+    active = jnp.ones(5, bool)
+    obs, mask = observe(pos, quat, active, before, now, radius=10.0)
+    features = np.asarray(clearance_features(obs))
+    geoms = len(load_arm().geom_names)
+    assert features.shape == (5, 5, 2 * geoms) and np.asarray(mask).all()
+    world = build_scene(2)
+    frames = {t: forward_kinematics(world.arm, pos, quat, q) for t, q in (("now", joints), ("before", previous))}
+
+    def clearance(t, i, j):
+        f = frames[t]
+        return np.minimum(np.asarray(geom_clearances(world, f.capsules[i], f.boxes[i], f.capsules[j], f.boxes[j])), CLEARANCE_CAP)
+
+    near = 0
+    for i in range(5):
+        np.testing.assert_allclose(features[i, -1], np.r_[np.full(geoms, CLEARANCE_SCALE * CLEARANCE_CAP), np.zeros(geoms)])
+        seen = np.argsort(-np.linalg.norm(bases[:, :2] - bases[i, :2], axis=-1), kind="stable")[:-1]  # farthest first
+        for slot, j in enumerate(seen):
+            d_now, d_before = clearance("now", i, j), clearance("before", i, j)
+            np.testing.assert_allclose(features[i, slot, :geoms], CLEARANCE_SCALE * d_now, atol=1e-4)
+            np.testing.assert_allclose(features[i, slot, geoms:], CLOSING_SCALE * (d_before - d_now), atol=1e-4)
+            near += (d_now < CLEARANCE_CAP).sum()
+    assert near > 0  # the scene has arms within the cap
+    both = np.asarray(InputFeatures(goal=True, clearance=True)(obs))
+    assert both.shape == (5, 5, ELEMENT_SIZE + 6 + 2 * geoms) == (5, 5, InputFeatures(goal=True, clearance=True).size)
+    np.testing.assert_array_equal(both[..., -2 * geoms:], features)
+    padded, _ = observe(pos, quat, active.at[3:].set(False), before, now)  # masked (all-zero) elements
+    assert np.isfinite(np.asarray(clearance_features(padded))).all()

@@ -30,6 +30,9 @@ import dataclasses
 import jax.numpy as jnp
 from flax import struct
 
+from mjx_multiarm.geometry.collision import geom_clearances
+from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.scene import build_scene
 from mjx_multiarm.geometry.transforms import (
     canonical_quat,
     quat_conjugate,
@@ -59,6 +62,14 @@ NEARNESS_FEATURES = 14
 NEARNESS_CAP = 1.0
 #: Closing speed scale: metres per step x this (a full-speed approach is ~0.1 m per step).
 CLOSING_SCALE = 10.0
+#: Clearance features: per collision geom of the observing arm its signed distance to the
+#: element's arm, capped at :data:`CLEARANCE_CAP` (m) and scaled by :data:`CLEARANCE_SCALE`,
+#: then how fast each closed since t-1 (x :data:`CLOSING_SCALE`).
+CLEARANCE_CAP = 0.3
+CLEARANCE_SCALE = 10.0
+#: Slices of an element: joints at t-1 and t, base position and quaternion.
+JOINTS_PREV, JOINTS = slice(0, 6), slice(6, 12)
+BASE_POSITION, BASE_QUAT = slice(100, 103), slice(103, 107)
 #: Default neighbour radius (m): two workspace radii, as in the original code.
 NEIGHBOUR_RADIUS = 1.7
 
@@ -145,12 +156,15 @@ class InputFeatures:
     nearness: bool = option(False, "the networks see, for each observed arm, the distances from the observing arm's link "
                                    "points to its nearest link points, their closing speed and direction (0: the original)",
                             flag="nearness_features")
+    clearance: bool = option(False, "the networks see, for each observed arm, the exact signed distance from each of the "
+                                    "observing arm's collision geoms to it (the collision model's), and how fast each "
+                                    "closed (0: the original)", flag="clearance_features")
 
     @property
     def size(self) -> int:
         """Length of a transformed element."""
         return (ELEMENT_SIZE + 2 * len(QUATERNIONS) * self.rotations + GOAL_FEATURES * self.goal
-                + NEARNESS_FEATURES * self.nearness)
+                + NEARNESS_FEATURES * self.nearness + 2 * _num_geoms() * self.clearance)
 
     def __call__(self, obs):
         """Observation sequences [..., L, 107] (the observing arm last) -> [..., L, size]."""
@@ -159,6 +173,8 @@ class InputFeatures:
             parts.append(goal_features(obs))
         if self.nearness:
             parts.append(nearness_features(obs))
+        if self.clearance:
+            parts.append(clearance_features(obs))
         return jnp.concatenate(parts, axis=-1) if len(parts) > 1 else parts[0]
 
 
@@ -202,6 +218,37 @@ def nearness_features(obs):
     features = jnp.concatenate([jnp.minimum(now, NEARNESS_CAP), closing[..., None], end - start], axis=-1)
     is_self = jnp.arange(obs.shape[-2]) == obs.shape[-2] - 1
     far = jnp.concatenate([jnp.full(10, NEARNESS_CAP), jnp.zeros(4)]).astype(obs.dtype)
+    return jnp.where(is_self[:, None], far, features)
+
+
+def _num_geoms() -> int:
+    return len(build_scene(2).arm.geom_names)
+
+
+def clearance_features(obs):
+    """[..., L, 2 G] of observation sequences [..., L, 107] whose last element is the
+    observing arm (G = 13 collision geoms per arm): the signed distance (m, capped at
+    :data:`CLEARANCE_CAP`, x :data:`CLEARANCE_SCALE`) from each of the observer's collision
+    geoms to each element's arm at t, exact under the collision model
+    (:func:`~mjx_multiarm.geometry.collision.geom_clearances` of both arms posed from their
+    observed joints and base poses), then how much each closed since t-1 (x
+    :data:`CLOSING_SCALE`). Decentralized: computed from what the arm observes. The
+    observer's own element reads as far (cap, 0); masked (all-zero) elements stay finite.
+    """
+    scene = build_scene(2)
+    quat = obs[..., BASE_QUAT]
+    quat = jnp.where(jnp.any(quat != 0.0, axis=-1, keepdims=True), quat, jnp.array([1.0, 0.0, 0.0, 0.0], obs.dtype))
+
+    def clearances(joints):  # [..., L, G]
+        frames = forward_kinematics(scene.arm, obs[..., BASE_POSITION], quat, joints)
+        own = frames.capsules[..., -1:, :, :, :], frames.boxes[..., -1:, :, :, :]
+        return jnp.minimum(geom_clearances(scene, *own, frames.capsules, frames.boxes), CLEARANCE_CAP)
+
+    now, before = clearances(obs[..., JOINTS]), clearances(obs[..., JOINTS_PREV])
+    features = jnp.concatenate([CLEARANCE_SCALE * now, CLOSING_SCALE * (before - now)], axis=-1)
+    geoms = now.shape[-1]
+    far = jnp.concatenate([jnp.full(geoms, CLEARANCE_SCALE * CLEARANCE_CAP), jnp.zeros(geoms)]).astype(obs.dtype)
+    is_self = jnp.arange(obs.shape[-2]) == obs.shape[-2] - 1
     return jnp.where(is_self[:, None], far, features)
 
 

@@ -365,6 +365,33 @@ def _flat_self_and_ground(scene: Scene, capsules, boxes) -> tuple[jnp.ndarray, j
     return self_dist, ground
 
 
+def geom_clearances(scene: Scene, capsules, boxes, other_capsules, other_boxes) -> jnp.ndarray:
+    """[..., ngeom] the signed distance from each collision geom of one arm (``capsules``
+    [..., ncap, 2, 3], ``boxes`` [..., nbox, 4, 3], posed as ``ArmFrames``) to another arm
+    (``other_*``, the same shapes): the smallest over the other arm's geoms, counting the
+    geom pairs ``scene.pairs.between_arms`` checks (``inf`` for a geom with none). Their
+    minimum is the two arms' ``between_arms`` distance of :func:`geom_contacts`."""
+    batch = jnp.broadcast_shapes(capsules.shape[:-3], other_capsules.shape[:-3])
+
+    def flat(mine, theirs):  # [N, 2, G, k, 3]: this arm, then the other
+        pair = [jnp.broadcast_to(x, (*batch, *x.shape[-3:])) for x in (mine, theirs)]
+        return jnp.stack(pair, axis=-4).reshape(-1, 2, *mine.shape[-3:])
+
+    types = _posed_types(scene.arm, flat(capsules, other_capsules), flat(boxes, other_boxes))
+    offsets = np.cumsum([0] + [t.count for t in types])
+    checked = scene.pairs.between_arms
+    rows = []
+    for ta, a in enumerate(types):
+        row = jnp.full((a.count, math.prod(batch)), jnp.inf, capsules.dtype)
+        for tb, b in enumerate(types):
+            mask = checked[offsets[ta]:offsets[ta + 1], offsets[tb]:offsets[tb + 1]]
+            if mask.any():
+                d = _pair_distance(a.take(0, np.array([0])).expand(2), b.take(0, np.array([1])).expand(1))[0]  # [Ga, Gb, N]
+                row = jnp.minimum(row, jnp.where(mask[..., None], d, jnp.inf).min(axis=1))
+        rows.append(row)
+    return jnp.concatenate(rows, axis=0).T.reshape(*batch, -1)
+
+
 def geom_contacts(scene: Scene, capsules, boxes, active, chunk: int | None = None) -> Contacts:
     """Signed distances of posed collision geoms.
 
