@@ -37,7 +37,7 @@ def test_round_trip_gives_the_same_actor(policy_path):
 
 
 @pytest.mark.parametrize("inputs", [InputFeatures(rotations=True), InputFeatures(goal=True), InputFeatures(True, True),
-                                    InputFeatures(goal=True, nearness=True)])
+                                    InputFeatures(goal=True, nearness=True), InputFeatures(goal=True, clearance=True)])
 def test_round_trip_of_actors_with_input_features(tmp_path, inputs):
     """An actor with input features comes back with them (they are in the file), and a
     plain actor's file is not read as one."""
