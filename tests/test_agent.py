@@ -144,6 +144,10 @@ def test_expert_bc_loss_counts_expert_rows_the_critic_prefers():
     assert float(share) == pytest.approx(2 / 8)
     loss, share = expert_bc_loss(action, batch, -q_data - 2, jnp.zeros(8))  # the critic prefers the policy everywhere
     assert float(loss) == 0.0 and float(share) == 0.0
+    loss, share = expert_bc_loss(action, batch, -q_data - 2, jnp.zeros(8), filtered=False)  # every expert row
+    expected = np.mean(np.sum(np.asarray(batch.action)[[0, 2, 4, 6]] ** 2, axis=-1))
+    np.testing.assert_allclose(loss, expected, rtol=1e-6)
+    assert float(share) == pytest.approx(4 / 8)
 
 
 def test_expert_bc_pulls_the_mean_action_toward_the_expert_actions():

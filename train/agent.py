@@ -7,7 +7,8 @@ function. The original's choices are the default: fixed entropy temperature 0.00
 bounded-variance Gaussian without tanh squashing; ``squash=True, learn_alpha=True`` gives
 standard SAC (tanh-squashed samples, temperature tuned to a target entropy of -6).
 ``expert_bc > 0`` adds a Q-filtered behaviour-cloning term on the buffer's expert
-transitions to the actor loss (:func:`expert_bc_loss`). ``bc_start`` = N > 0 gives a
+transitions to the actor loss (:func:`expert_bc_loss`; ``expert_bc_filter=False`` drops the
+filter). ``bc_start`` = N > 0 gives a
 behaviour-cloned start: for the first N updates the actor step regresses the mean action
 onto the batch's expert actions (the critics learn as usual meanwhile, so SAC takes over
 from a cloned actor with a critic of it). ``policy_average > 0`` keeps a Polyak
@@ -49,6 +50,8 @@ class SACConfig:
     expert_bc: float = option(0.0, "weight of a behaviour-cloning term on the expert transitions in the actor loss, applied "
                                    "where the critic rates the expert's action above the policy's (Nair et al. 2018; 0: the "
                                    "original's pure SAC)")
+    expert_bc_filter: bool = option(True, "apply the expert behaviour-cloning term only where the critic rates the "
+                                          "expert's action above the policy's (0: on every expert transition)")
     policy_average: float = option(0.0, "deploy (evaluate and export) a Polyak average of the actor's parameters, updated at "
                                         "this rate per gradient update (0: the latest actor, as the original)")
     inputs: InputFeatures = InputFeatures()
@@ -133,15 +136,16 @@ def critic_loss(agent: Agent, critic: nnx.State, batch: Transitions, target) -> 
     return jnp.mean((q1 - target) ** 2) + jnp.mean((q2 - target) ** 2), (q1, q2, encodings)
 
 
-def expert_bc_loss(action, batch: Transitions, q_data, q_policy) -> tuple[jnp.ndarray, jnp.ndarray]:
+def expert_bc_loss(action, batch: Transitions, q_data, q_policy, filtered: bool = True) -> tuple[jnp.ndarray, jnp.ndarray]:
     """(behaviour-cloning loss, fraction of the batch it applies to), Q-filtered as Nair et
     al. 2018 ("Overcoming exploration in RL with demonstrations").
 
     The squared error between the policy's deterministic ``action`` [N, 6] and the stored
     action counts on the batch's expert transitions where the critic values the expert's
     action above the policy's (``q_data`` > ``q_policy``, both [N]), so the policy imitates
-    the expert only where the expert is still the better choice."""
-    applies = batch.expert & (q_data > q_policy)
+    the expert only where the expert is still the better choice; ``filtered=False``: on
+    every expert transition."""
+    applies = batch.expert & (q_data > q_policy) if filtered else batch.expert
     error = jnp.sum((action - batch.action) ** 2, axis=-1)
     return jnp.sum(jnp.where(applies, error, 0.0)) / jnp.maximum(applies.sum(), 1), jnp.mean(applies)
 
@@ -165,7 +169,7 @@ def sac_update(agent: Agent, batch: Transitions, key, config: SACConfig = SACCon
         loss = jnp.mean(alpha * log_prob - q)
         bc, bc_share = jnp.zeros(()), jnp.zeros(())
         if config.expert_bc:
-            bc, bc_share = expert_bc_loss(actor.sample(mean, log_std)[0], batch, jnp.minimum(q1, q2), q)
+            bc, bc_share = expert_bc_loss(actor.sample(mean, log_std)[0], batch, jnp.minimum(q1, q2), q, config.expert_bc_filter)
         loss = loss + config.expert_bc * bc
         if config.bc_start:  # behaviour-cloned start: imitate the batch's expert rows
             error = jnp.sum((actor.sample(mean, log_std)[0] - batch.action) ** 2, axis=-1)
