@@ -164,7 +164,7 @@ class InputFeatures:
     def size(self) -> int:
         """Length of a transformed element."""
         return (ELEMENT_SIZE + 2 * len(QUATERNIONS) * self.rotations + GOAL_FEATURES * self.goal
-                + NEARNESS_FEATURES * self.nearness + 2 * _num_geoms() * self.clearance)
+                + NEARNESS_FEATURES * self.nearness + (2 * _num_geoms() if self.clearance else 0))
 
     def __call__(self, obs):
         """Observation sequences [..., L, 107] (the observing arm last) -> [..., L, size]."""
@@ -222,6 +222,7 @@ def nearness_features(obs):
 
 
 def _num_geoms() -> int:
+    """Collision geoms per arm (the clearance features' G)."""
     return len(build_scene(2).arm.geom_names)
 
 
