@@ -91,6 +91,22 @@ def test_quaternions_are_expressed_in_the_observer_frame(scene):
     assert (own[:, 3] >= 0).all()
 
 
+def _observed_at_two_steps(scene):
+    """(base positions, quaternions, snapshots at t-1 and t, observations) of the scene's
+    five arms, every arm seeing every other (radius 10 m)."""
+    bases, joints, previous, targets = scene
+    pos, quat, now = _snapshot(bases, joints, targets)
+    _, _, before = _snapshot(bases, previous, targets)
+    obs, mask = observe(pos, quat, jnp.ones(5, bool), before, now, radius=10.0)
+    assert np.asarray(mask).all()
+    return pos, quat, before, now, obs
+
+
+def _seen_farthest_first(bases, i):
+    """The arms observer ``i`` sees, in its sequence's order (farthest base first), itself excluded."""
+    return np.argsort(-np.linalg.norm(bases[:, :2] - bases[i, :2], axis=-1), kind="stable")[:-1]
+
+
 def test_nearness_features_are_the_link_point_distances_to_each_observed_arm(scene):
     """For every observer and every arm it sees: per own link point the distance to that
     arm's nearest link point (brute force in the world frame), the closing speed of the
@@ -103,19 +119,15 @@ def test_nearness_features_are_the_link_point_distances_to_each_observed_arm(sce
         nearness_features,
     )
 
-    bases, joints, previous, targets = scene
-    pos, quat, now = _snapshot(bases, joints, targets)
-    _, _, before = _snapshot(bases, previous, targets)
-    active = jnp.ones(5, bool)
-    obs, mask = observe(pos, quat, active, before, now, radius=10.0)
+    bases = scene[0]
+    _, _, before, now, obs = _observed_at_two_steps(scene)
     features = np.asarray(nearness_features(obs))
-    assert features.shape == (5, 5, 14) and np.asarray(mask).all()
+    assert features.shape == (5, 5, 14)
     own_now, own_before = np.asarray(now.points, np.float64), np.asarray(before.points, np.float64)
     dist = lambda a, b: np.linalg.norm(a[:, None] - b[None], axis=-1)
     for i in range(5):
         np.testing.assert_allclose(features[i, -1], np.r_[np.full(10, NEARNESS_CAP), np.zeros(4)])
-        seen = np.argsort(-np.linalg.norm(bases[:, :2] - bases[i, :2], axis=-1), kind="stable")[:-1]  # farthest first
-        for slot, j in enumerate(seen):
+        for slot, j in enumerate(_seen_farthest_first(bases, i)):
             d_now, d_before = dist(own_now[i], own_now[j]), dist(own_before[i], own_before[j])
             np.testing.assert_allclose(features[i, slot, :10], np.minimum(d_now.min(axis=1), NEARNESS_CAP), atol=2e-5)
             np.testing.assert_allclose(features[i, slot, 10], CLOSING_SCALE * (d_before.min() - d_now.min()), atol=3e-4)
@@ -140,14 +152,11 @@ def test_clearance_features_are_each_own_geoms_exact_distance_to_each_observed_a
     from mjx_multiarm.geometry.collision import geom_clearances
     from mjx_multiarm.geometry.scene import build_scene
 
-    bases, joints, previous, targets = scene
-    pos, quat, now = _snapshot(bases, joints, targets)
-    _, _, before = _snapshot(bases, previous, targets)
-    active = jnp.ones(5, bool)
-    obs, mask = observe(pos, quat, active, before, now, radius=10.0)
+    bases, joints, previous, _ = scene
+    pos, quat, before, now, obs = _observed_at_two_steps(scene)
     features = np.asarray(clearance_features(obs))
     geoms = len(load_arm().geom_names)
-    assert features.shape == (5, 5, 2 * geoms) and np.asarray(mask).all()
+    assert features.shape == (5, 5, 2 * geoms)
     world = build_scene(2)
     frames = {t: forward_kinematics(world.arm, pos, quat, q) for t, q in (("now", joints), ("before", previous))}
 
@@ -158,8 +167,7 @@ def test_clearance_features_are_each_own_geoms_exact_distance_to_each_observed_a
     near = 0
     for i in range(5):
         np.testing.assert_allclose(features[i, -1], np.r_[np.full(geoms, CLEARANCE_SCALE * CLEARANCE_CAP), np.zeros(geoms)])
-        seen = np.argsort(-np.linalg.norm(bases[:, :2] - bases[i, :2], axis=-1), kind="stable")[:-1]  # farthest first
-        for slot, j in enumerate(seen):
+        for slot, j in enumerate(_seen_farthest_first(bases, i)):
             d_now, d_before = clearance("now", i, j), clearance("before", i, j)
             np.testing.assert_allclose(features[i, slot, :geoms], CLEARANCE_SCALE * d_now, atol=1e-4)
             np.testing.assert_allclose(features[i, slot, geoms:], CLOSING_SCALE * (d_before - d_now), atol=1e-4)
@@ -168,5 +176,5 @@ def test_clearance_features_are_each_own_geoms_exact_distance_to_each_observed_a
     both = np.asarray(InputFeatures(goal=True, clearance=True)(obs))
     assert both.shape == (5, 5, ELEMENT_SIZE + 6 + 2 * geoms) == (5, 5, InputFeatures(goal=True, clearance=True).size)
     np.testing.assert_array_equal(both[..., -2 * geoms:], features)
-    padded, _ = observe(pos, quat, active.at[3:].set(False), before, now)  # masked (all-zero) elements
+    padded, _ = observe(pos, quat, jnp.arange(5) < 3, before, now)  # masked (all-zero) elements
     assert np.isfinite(np.asarray(clearance_features(padded))).all()

@@ -197,6 +197,14 @@ def _nearest(own, other):
     return distance.min(axis=-1), distance.argmin(axis=-1)
 
 
+def _observer_reads_far(features, cap, distances: int):
+    """``features`` [..., L, F] of a sequence with the observing arm's own element (last)
+    set to "far": its first ``distances`` entries at ``cap``, the rest 0."""
+    far = jnp.where(jnp.arange(features.shape[-1]) < distances, cap, 0.0).astype(features.dtype)
+    is_self = jnp.arange(features.shape[-2]) == features.shape[-2] - 1
+    return jnp.where(is_self[:, None], far, features)
+
+
 def nearness_features(obs):
     """[..., L, 14] of observation sequences [..., L, 107] whose last element is the
     observing arm: for each element's arm, the distance from each of the observer's 10 link
@@ -216,9 +224,7 @@ def nearness_features(obs):
     end = jnp.take_along_axis(other_points, target[..., None], axis=-2)[..., 0, :]
     closing = CLOSING_SCALE * (before.min(axis=-1) - now.min(axis=-1))
     features = jnp.concatenate([jnp.minimum(now, NEARNESS_CAP), closing[..., None], end - start], axis=-1)
-    is_self = jnp.arange(obs.shape[-2]) == obs.shape[-2] - 1
-    far = jnp.concatenate([jnp.full(10, NEARNESS_CAP), jnp.zeros(4)]).astype(obs.dtype)
-    return jnp.where(is_self[:, None], far, features)
+    return _observer_reads_far(features, NEARNESS_CAP, 10)
 
 
 def _num_geoms() -> int:
@@ -247,10 +253,7 @@ def clearance_features(obs):
 
     now, before = clearances(obs[..., JOINTS]), clearances(obs[..., JOINTS_PREV])
     features = jnp.concatenate([CLEARANCE_SCALE * now, CLOSING_SCALE * (before - now)], axis=-1)
-    geoms = now.shape[-1]
-    far = jnp.concatenate([jnp.full(geoms, CLEARANCE_SCALE * CLEARANCE_CAP), jnp.zeros(geoms)]).astype(obs.dtype)
-    is_self = jnp.arange(obs.shape[-2]) == obs.shape[-2] - 1
-    return jnp.where(is_self[:, None], far, features)
+    return _observer_reads_far(features, CLEARANCE_SCALE * CLEARANCE_CAP, now.shape[-1])
 
 
 def rotation_features(obs):

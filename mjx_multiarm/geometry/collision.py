@@ -378,17 +378,10 @@ def geom_clearances(scene: Scene, capsules, boxes, other_capsules, other_boxes) 
         return jnp.stack(pair, axis=-4).reshape(-1, 2, *mine.shape[-3:])
 
     types = _posed_types(scene.arm, flat(capsules, other_capsules), flat(boxes, other_boxes))
-    offsets = np.cumsum([0] + [t.count for t in types])
-    checked = scene.pairs.between_arms
-    rows = []
-    for ta, a in enumerate(types):
-        row = jnp.full((a.count, math.prod(batch)), jnp.inf, capsules.dtype)
-        for tb, b in enumerate(types):
-            mask = checked[offsets[ta]:offsets[ta + 1], offsets[tb]:offsets[tb + 1]]
-            if mask.any():
-                d = _pair_distance(a.take(0, np.array([0])).expand(2), b.take(0, np.array([1])).expand(1))[0]  # [Ga, Gb, N]
-                row = jnp.minimum(row, jnp.where(mask[..., None], d, jnp.inf).min(axis=1))
-        rows.append(row)
+    rows = [jnp.full((t.count, math.prod(batch)), jnp.inf, capsules.dtype) for t in types]
+    for ta, a, _, b, mask in _type_blocks(types, scene.pairs.between_arms):
+        d = _pair_distance(a.take(0, np.array([0])).expand(2), b.take(0, np.array([1])).expand(1))[0]  # [Ga, Gb, N]
+        rows[ta] = jnp.minimum(rows[ta], jnp.where(mask[..., None], d, jnp.inf).min(axis=1))
     return jnp.concatenate(rows, axis=0).T.reshape(*batch, -1)
 
 
