@@ -22,11 +22,18 @@ from mjx_multiarm import (
     scene_contacts,
     swept_contacts,
 )
-from mjx_multiarm.geometry.collision import frame_contacts, geom_clearances
+from mjx_multiarm.geometry.collision import KERNEL_VARIABLE, KERNELS, frame_contacts, geom_clearances
 from mjx_multiarm.geometry.evaluate import base_pose_arrays
 from mjx_multiarm.geometry.scene import build_scene, set_mujoco_state
 
 MAX_ARMS = 10
+
+
+@pytest.fixture(params=KERNELS)
+def kernel(request, monkeypatch):
+    """Each collision kernel in turn, as the default of the functions the test traces."""
+    monkeypatch.setenv(KERNEL_VARIABLE, request.param)
+    return request.param
 
 
 def _jax_contacts(scene, bases, joints, active):
@@ -68,7 +75,7 @@ def _mujoco_distances(scene, data, bases, joints, active):
 
 
 @pytest.mark.slow
-def test_verdicts_agree_with_mujoco_on_10000_random_scenes():
+def test_verdicts_agree_with_mujoco_on_10000_random_scenes(kernel):
     rng = np.random.default_rng(0)
     scene = build_scene(MAX_ARMS)
     data = mujoco.MjData(scene.mj_model)
@@ -83,7 +90,7 @@ def test_verdicts_agree_with_mujoco_on_10000_random_scenes():
     assert 0.2 < share < 0.8, share
 
 
-def test_signed_distances_match_mj_geom_distance():
+def test_signed_distances_match_mj_geom_distance(kernel):
     rng = np.random.default_rng(1)
     scene = build_scene(MAX_ARMS)
     data = mujoco.MjData(scene.mj_model)
@@ -166,7 +173,7 @@ def test_arm_through_the_floor():
     assert not evaluate_arms(np.zeros((1, 3)), np.array([UPRIGHT])).collided[0]
 
 
-def test_swept_motion_collides_between_free_endpoints():
+def test_swept_motion_collides_between_free_endpoints(kernel):
     """Arm 1 swings its pan through arm 0: both ends are free, the middle is not."""
     scene = build_scene(2)
     bases = np.array([[0.0, 0.0, 0.0], [0.75, 0.0, np.pi]])
@@ -231,10 +238,37 @@ def test_chunked_and_whole_batch_checks_agree():
     bases, joints, active = random_padded_scenes(rng, 50, 4)
     pos, quat = base_pose_arrays(bases)
     frames = forward_kinematics(scene.arm, pos, quat, jnp.asarray(joints, jnp.float32))
-    whole = frame_contacts(scene, frames, active, chunk=50)
-    chunked = frame_contacts(scene, frames, active, chunk=8)  # 7 chunks, the last one padded
+    whole = frame_contacts(scene, frames, active, chunk=50, kernel="xla")
+    chunked = frame_contacts(scene, frames, active, chunk=8, kernel="xla")  # 7 chunks, the last one padded
     for field in ("between_arms", "within_arm", "ground"):
         np.testing.assert_allclose(getattr(chunked, field), getattr(whole, field), atol=1e-6, err_msg=field)
+
+
+def test_numba_and_xla_kernels_give_the_same_distances():
+    """The two kernels on the same posed scenes (1-10 active arms, padding, some arms far
+    apart), called on a [2, N] batch under vmap: the same infinities, distances equal to
+    float32 rounding, hence the same verdicts away from contact."""
+    rng = np.random.default_rng(4)
+    scene = build_scene(MAX_ARMS)
+    bases, joints, active = random_padded_scenes(rng, 300, MAX_ARMS, spread=1.5)
+    bases[::7, :, :2] *= 3.0  # teams spread beyond reach of each other
+    pos, quat = base_pose_arrays(bases)
+    frames = forward_kinematics(scene.arm, pos, quat, jnp.asarray(joints, jnp.float32))
+    split = jax.tree.map(lambda x: x.reshape(2, -1, *x.shape[1:]), (frames, jnp.asarray(active)))
+
+    def contacts(kernel):
+        one = jax.jit(jax.vmap(lambda f, a: frame_contacts(scene, f, a, kernel=kernel)))
+        return jax.tree.map(lambda x: np.asarray(x).reshape(-1, MAX_ARMS), one(*split))
+
+    xla, compiled = contacts("xla"), contacts("numba")
+    for field in ("between_arms", "within_arm", "ground"):
+        a, b = getattr(compiled, field), getattr(xla, field)
+        np.testing.assert_array_equal(np.isinf(a), np.isinf(b), err_msg=field)
+        finite = np.isfinite(b)
+        np.testing.assert_allclose(a[finite], b[finite], atol=2e-6, err_msg=field)
+    clear = np.abs(xla.min_distance) > 1e-5
+    np.testing.assert_array_equal(compiled.collided[clear], xla.collided[clear])
+    assert 0.1 < xla.collided[active].mean() < 0.9 and np.isinf(xla.between_arms[~active]).all()
 
 
 @settings(max_examples=10)
@@ -253,7 +287,7 @@ def test_planar_rigid_motion_of_the_whole_scene_changes_nothing(dx, dy, yaw, see
         np.testing.assert_allclose(getattr(b, field), getattr(a, field), atol=1e-5, err_msg=field)
 
 
-def test_verdicts_match_the_recorded_reference(monkeypatch, capsys):
+def test_verdicts_match_the_recorded_reference(kernel, monkeypatch, capsys):
     """The first 2,000 of the 100,000 random scenes recorded by benchmarks/collision_verdicts.py
     give the recorded verdicts, arm by arm, and the numba checker's: a kernel change that
     keeps the collision model changes no verdict."""

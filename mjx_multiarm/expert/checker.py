@@ -2,12 +2,14 @@
 
 The planner asks one question at a time (is this configuration free? is this edge free?),
 which the batched JAX kernel (:mod:`mjx_multiarm.geometry.collision`) answers only through a
-dispatch of 100-200 microseconds, after compiling for every batch shape. This module evaluates the same geometry (the capsules and
-boxes of ``assets/ur5.xml``, the pairs of :class:`mjx_multiarm.geometry.scene.CollisionPairs`, the
-same exact distance formulas) as numba-compiled scalar code with early exits: bounding
-spheres of each arm and each geom skip pairs that cannot touch, and the first contact ends
-the query. Verdicts agree with the JAX kernel (``tests/test_expert_checker.py``) except
-within float rounding of contact: the kernel runs in float32, this code in float64.
+dispatch of 100-200 microseconds, after compiling for every batch shape. This module poses
+the arms and evaluates the same geometry (the capsules and boxes of ``assets/ur5.xml``, the
+pairs of :class:`mjx_multiarm.geometry.scene.CollisionPairs`, the exact distances of
+:mod:`mjx_multiarm.geometry.compiled`) as numba-compiled scalar code with early exits:
+bounding spheres of each arm and each geom skip pairs that cannot touch, and the first
+contact ends the query. Verdicts agree with the JAX kernel (``tests/test_expert_checker.py``)
+except within float rounding of contact: the kernel poses the arms in float32, this code in
+float64.
 
 Compiled functions are cached on disk by numba (``cache=True``), so worker processes do
 not compile again.
@@ -22,6 +24,11 @@ import mujoco
 import numba
 import numpy as np
 
+from mjx_multiarm.geometry.compiled import (
+    bounding_spheres,
+    geom_distance,
+    ground_distance,
+)
 from mjx_multiarm.geometry.robot import NUM_JOINTS, load_arm
 from mjx_multiarm.geometry.scene import build_scene
 
@@ -30,11 +37,6 @@ _jit = numba.njit(cache=True, nogil=True)
 #: float32 kernel (errors ~1e-6 m) sees no contact where this float64 code saw none. Small,
 #: because task goals may lie this close to contact (generated tasks: 1 in 1,000 within 0.1 mm).
 REPLAY_MARGIN = 1e-5
-
-
-@_jit
-def _dot(u, v):
-    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
 
 
 @_jit
@@ -95,173 +97,6 @@ def _pose_arm(base_pos, base_rot, joints, body_pos, body_rot, body_joint, joint_
 
 
 @_jit
-def _segment_distance(p1, q1, p2, q2):
-    """Distance between segments (Ericson 5.1.9, as :func:`mjx_multiarm.geometry.collision.segment_distance`)."""
-    a = e = b = c = f = 0.0
-    for i in range(3):
-        d1, d2, r = q1[i] - p1[i], q2[i] - p2[i], p1[i] - p2[i]
-        a, e, b, c, f = a + d1 * d1, e + d2 * d2, b + d1 * d2, c + d1 * r, f + d2 * r
-    denom = a * e - b * b
-    s = min(max((b * f - c * e) / denom, 0.0), 1.0) if denom > 1e-12 * a * e else 0.0
-    t = (b * s + f) / e
-    if t < 0.0:
-        s = min(max(-c / a, 0.0), 1.0)
-    elif t > 1.0:
-        s = min(max((b - c) / a, 0.0), 1.0)
-    t = min(max(t, 0.0), 1.0)
-    total = 0.0
-    for i in range(3):
-        gap = p1[i] - p2[i] + (q1[i] - p1[i]) * s - (q2[i] - p2[i]) * t
-        total += gap * gap
-    return math.sqrt(total)
-
-
-@_jit
-def _excess(x, h):
-    """How far x lies outside [-h, h] (signed, 0 inside)."""
-    return x - h if x > h else (x + h if x < -h else 0.0)
-
-
-@_jit
-def _segment_aabb_distance(a, b, h):
-    """Signed distance from the segment a + t b (t in [0, 1]) to the box |x_k| <= h_k: the
-    breakpoint-bracketed minimum of the convex piecewise-quadratic squared distance, or the
-    depth of the middle of the part inside (as the JAX kernel's ``_segment_aabb_distance``)."""
-    enter, leave = 0.0, 1.0
-    lo_t, lo_g, hi_t, hi_g = -np.inf, -np.inf, np.inf, np.inf
-    for c in range(8):
-        if c < 2:
-            t = float(c)
-        else:
-            k, face = (c - 2) // 2, h[(c - 2) // 2] if c % 2 else -h[(c - 2) // 2]
-            t = 0.0 if abs(b[k]) <= 1e-12 else min(max((face - a[k]) / b[k], 0.0), 1.0)
-        g = 0.0
-        for k in range(3):
-            g += b[k] * _excess(a[k] + t * b[k], h[k])
-        if g <= 0.0:
-            lo_t, lo_g = max(lo_t, t), max(lo_g, g)
-        if g >= 0.0:
-            hi_t, hi_g = min(hi_t, t), min(hi_g, g)
-    for k in range(3):
-        if abs(b[k]) > 1e-12:
-            t1, t2 = (-h[k] - a[k]) / b[k], (h[k] - a[k]) / b[k]
-            enter, leave = max(enter, min(t1, t2)), min(leave, max(t1, t2))
-        elif abs(a[k]) > h[k]:
-            enter = np.inf
-    if enter <= leave:
-        middle, depth = 0.5 * (enter + leave), -np.inf
-        for k in range(3):
-            depth = max(depth, abs(a[k] + middle * b[k]) - h[k])
-        return min(depth, 0.0)
-    if np.isinf(lo_t):
-        best = 0.0
-    elif np.isinf(hi_t):
-        best = 1.0
-    elif hi_t <= lo_t:
-        best = hi_t
-    else:
-        best = lo_t - lo_g * (hi_t - lo_t) / (hi_g - lo_g)
-    total = 0.0
-    for k in range(3):
-        o = _excess(a[k] + best * b[k], h[k])
-        total += o * o
-    return math.sqrt(total)
-
-
-@_jit
-def _segment_box_distance(p, q, box, half):
-    """Signed distance from segment [p, q] to a box (frame [4, 3]: centre, unit axes)."""
-    a, b = np.empty(3), np.empty(3)
-    for k in range(3):
-        axis = box[k + 1]
-        a[k] = (p[0] - box[0, 0]) * axis[0] + (p[1] - box[0, 1]) * axis[1] + (p[2] - box[0, 2]) * axis[2]
-        b[k] = (q[0] - p[0]) * axis[0] + (q[1] - p[1]) * axis[1] + (q[2] - p[2]) * axis[2]
-    return _segment_aabb_distance(a, b, half)
-
-
-@_jit
-def _box_box_distance(box_a, half_a, box_b, half_b):
-    """Signed distance between boxes (as :func:`mjx_multiarm.geometry.collision.box_box_distance`):
-    separating-axis penetration when they overlap, else A's 12 edges and B's 8 corners."""
-    r = np.empty((3, 3))
-    t = np.empty(3)
-    for i in range(3):
-        t[i] = 0.0
-        for m in range(3):
-            t[i] += (box_b[0, m] - box_a[0, m]) * box_a[i + 1, m]
-        for j in range(3):
-            r[i, j] = _dot(box_a[i + 1], box_b[j + 1])
-    ar = np.abs(r) + 1e-6
-    gap = -np.inf
-    for i in range(3):
-        gap = max(gap, abs(t[i]) - half_a[i] - (half_b[0] * ar[i, 0] + half_b[1] * ar[i, 1] + half_b[2] * ar[i, 2]))
-    for j in range(3):
-        gap = max(gap, abs(t[0] * r[0, j] + t[1] * r[1, j] + t[2] * r[2, j]) - half_b[j]
-                  - (half_a[0] * ar[0, j] + half_a[1] * ar[1, j] + half_a[2] * ar[2, j]))
-    for i in range(3):
-        i1, i2 = (i + 1) % 3, (i + 2) % 3
-        for j in range(3):
-            j1, j2 = (j + 1) % 3, (j + 2) % 3
-            centre = abs(t[i2] * r[i1, j] - t[i1] * r[i2, j])
-            extent = half_a[i1] * ar[i2, j] + half_a[i2] * ar[i1, j] + half_b[j1] * ar[i, j2] + half_b[j2] * ar[i, j1]
-            gap = max(gap, (centre - extent) / (math.sqrt(max(1.0 - r[i, j] ** 2, 0.0)) + 1e-6))
-    if gap < 0.0:
-        return gap
-    nearest = np.inf
-    centre_in_b = np.empty(3)
-    for j in range(3):
-        centre_in_b[j] = -(t[0] * r[0, j] + t[1] * r[1, j] + t[2] * r[2, j])
-    start, step = np.empty(3), np.empty(3)
-    for k in range(3):
-        i1, i2 = (k + 1) % 3, (k + 2) % 3
-        for s1 in (-1.0, 1.0):
-            for s2 in (-1.0, 1.0):
-                for j in range(3):
-                    start[j] = (centre_in_b[j] + s1 * half_a[i1] * r[i1, j] + s2 * half_a[i2] * r[i2, j]
-                                - half_a[k] * r[k, j])
-                    step[j] = 2.0 * half_a[k] * r[k, j]
-                nearest = min(nearest, _segment_aabb_distance(start, step, half_b))
-    for s0 in (-1.0, 1.0):
-        for s1 in (-1.0, 1.0):
-            for s2 in (-1.0, 1.0):
-                total = 0.0
-                for i in range(3):
-                    o = _excess(t[i] + s0 * half_b[0] * r[i, 0] + s1 * half_b[1] * r[i, 1] + s2 * half_b[2] * r[i, 2], half_a[i])
-                    total += o * o
-                nearest = min(nearest, math.sqrt(total))
-    return nearest
-
-
-@_jit
-def _geom_distance(capsules_a, boxes_a, ga, capsules_b, boxes_b, gb, radius, box_half):
-    """Signed distance of geom ``ga`` of arm A and geom ``gb`` of arm B (capsules, then boxes)."""
-    ncap = radius.shape[0]
-    if ga < ncap and gb < ncap:
-        return _segment_distance(capsules_a[ga, 0], capsules_a[ga, 1], capsules_b[gb, 0], capsules_b[gb, 1]) \
-            - radius[ga] - radius[gb]
-    if ga >= ncap and gb >= ncap:
-        return _box_box_distance(boxes_a[ga - ncap], box_half[ga - ncap], boxes_b[gb - ncap], box_half[gb - ncap])
-    if ga < ncap:
-        return _segment_box_distance(capsules_a[ga, 0], capsules_a[ga, 1], boxes_b[gb - ncap], box_half[gb - ncap]) - radius[ga]
-    return _segment_box_distance(capsules_b[gb, 0], capsules_b[gb, 1], boxes_a[ga - ncap], box_half[ga - ncap]) - radius[gb]
-
-
-@_jit
-def _bounding_spheres(capsules, boxes, radius, box_half, centres, radii):
-    """Per geom, a bounding sphere (written in place)."""
-    ncap = radius.shape[0]
-    for c in range(ncap):
-        length2 = 0.0
-        for i in range(3):
-            centres[c, i] = 0.5 * (capsules[c, 0, i] + capsules[c, 1, i])
-            length2 += (capsules[c, 1, i] - capsules[c, 0, i]) ** 2
-        radii[c] = 0.5 * math.sqrt(length2) + radius[c]
-    for x in range(boxes.shape[0]):
-        centres[ncap + x] = boxes[x, 0]
-        radii[ncap + x] = math.sqrt(_dot(box_half[x], box_half[x]))
-
-
-@_jit
 def _spheres_apart(centres_a, radii_a, a, centres_b, radii_b, b, margin):
     d2 = 0.0
     for i in range(3):
@@ -283,17 +118,9 @@ def _collides(joints, margin, base_pos, base_rot, body_pos, body_rot, body_joint
     for i in range(k):
         _pose_arm(base_pos[i], base_rot[i], joints[i], body_pos, body_rot, body_joint, joint_axis,
                   capsule_body, capsule_ends, box_body, box_frame, capsules[i], boxes[i])
-        for g in ground:  # the lowest capsule end minus the radius, the lowest box corner
-            if g < ncap:
-                low = min(capsules[i, g, 0, 2], capsules[i, g, 1, 2]) - radius[g]
-            else:
-                x = g - ncap
-                low = boxes[i, x, 0, 2]
-                for a in range(3):
-                    low -= box_half[x, a] * abs(boxes[i, x, a + 1, 2])
-            if low < margin:
-                return True
-        _bounding_spheres(capsules[i], boxes[i], radius, box_half, centres[i], radii[i])
+        if ground_distance(capsules[i], boxes[i], radius, box_half, ground) < margin:
+            return True
+        bounding_spheres(capsules[i], boxes[i], radius, box_half, centres[i], radii[i])
         arm_radius[i] = 0.0
         for g in range(ncap + nbox):
             d2 = 0.0
@@ -322,7 +149,7 @@ def _pairs_touch(pairs, i, j, capsules, boxes, centres, radii, radius, box_half,
         a, b = pairs[p, 0], pairs[p, 1]
         if _spheres_apart(centres[i], radii[i], a, centres[j], radii[j], b, margin):
             continue
-        if _geom_distance(capsules[i], boxes[i], a, capsules[j], boxes[j], b, radius, box_half) < margin:
+        if geom_distance(capsules[i], boxes[i], a, capsules[j], boxes[j], b, radius, box_half) < margin:
             return True
     return False
 

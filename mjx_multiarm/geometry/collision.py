@@ -15,8 +15,12 @@ Distances are signed: negative means penetration (for a segment that enters a bo
 depth of the middle of its part inside). The pairs checked are those of
 :class:`mjx_multiarm.geometry.scene.CollisionPairs`.
 
-Coordinates are handled as separate x/y/z arrays inside the kernel so that XLA fuses each
-check into one elementwise loop over all pairs of all scenes.
+Two kernels compute these distances (:data:`KERNELS`): ``"xla"``, the JAX code below, for
+any backend (coordinates as separate x/y/z arrays, so that XLA fuses each check into one
+elementwise loop over all pairs of all scenes), and ``"numba"``, the same distances compiled
+for the CPU with a broad phase (:func:`mjx_multiarm.geometry.compiled.batch_contacts`),
+called from traced code through ``jax.pure_callback``. :func:`default_kernel` picks numba on
+the CPU backend and XLA elsewhere.
 """
 
 from __future__ import annotations
@@ -25,12 +29,15 @@ import dataclasses
 import functools
 import itertools
 import math
+import os
+import threading
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from mjx_multiarm.geometry import compiled
 from mjx_multiarm.geometry.kinematics import ArmFrames, forward_kinematics
 from mjx_multiarm.geometry.scene import Scene
 
@@ -47,6 +54,10 @@ CPU_CHUNK = 64
 CPU_BOX_CHUNK = (1024, 256)
 BOX_CHUNK_MIN_ARMS = 5
 CPU_SELF_CHUNK = 1024
+#: The collision kernels: the JAX code of this module, and its numba-compiled CPU twin.
+KERNELS = ("xla", "numba")
+#: Environment variable that overrides :func:`default_kernel` (one of :data:`KERNELS`).
+KERNEL_VARIABLE = "MJX_MULTIARM_COLLISION_KERNEL"
 
 
 @struct.dataclass
@@ -385,7 +396,16 @@ def geom_clearances(scene: Scene, capsules, boxes, other_capsules, other_boxes) 
     return jnp.concatenate(rows, axis=0).T.reshape(*batch, -1)
 
 
-def geom_contacts(scene: Scene, capsules, boxes, active, chunk: int | None = None) -> Contacts:
+def default_kernel() -> str:
+    """``$MJX_MULTIARM_COLLISION_KERNEL`` if set, else ``"numba"`` on the CPU backend and
+    ``"xla"`` on accelerators (read when a function is traced)."""
+    kernel = os.environ.get(KERNEL_VARIABLE) or ("numba" if jax.default_backend() == "cpu" else "xla")
+    if kernel not in KERNELS:
+        raise ValueError(f"{KERNEL_VARIABLE}={kernel!r}: expected one of {KERNELS}")
+    return kernel
+
+
+def geom_contacts(scene: Scene, capsules, boxes, active, chunk: int | None = None, kernel: str | None = None) -> Contacts:
     """Signed distances of posed collision geoms.
 
     Args:
@@ -393,30 +413,39 @@ def geom_contacts(scene: Scene, capsules, boxes, active, chunk: int | None = Non
       capsules: [..., max_arms, ncap, 2, 3] world capsule segments (``ArmFrames.capsules``).
       boxes: [..., max_arms, nbox, 4, 3] world box frames (``ArmFrames.boxes``).
       active: [..., max_arms] bool; inactive slots never collide and never affect others.
-      chunk: scenes per chunk of the capsule-capsule check between arms (a sequential
-        ``lax.map`` over chunks). Default: :data:`CPU_CHUNK` for multi-arm scenes on the
-        CPU backend (2-3x faster at large batches: the working set stays in cache), the
-        whole batch at once otherwise.
+      chunk: XLA kernel: scenes per chunk of the capsule-capsule check between arms (a
+        sequential ``lax.map`` over chunks). Default: :data:`CPU_CHUNK` for multi-arm scenes
+        on the CPU backend (2-3x faster at large batches: the working set stays in cache),
+        the whole batch at once otherwise.
+      kernel: one of :data:`KERNELS`; default :func:`default_kernel`. Both return the same
+        distances up to float32 rounding (the numba kernel computes in float64).
 
     Under ``jax.vmap`` the mapped axes join the leading dims: the kernel always sees the
     whole batch of scenes at once (vectorized over scenes, chunked on CPU), however it is
     called.
     """
-    return _batched_kernel(scene, chunk)(capsules, boxes, active)
+    kernel = kernel or default_kernel()
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel {kernel!r}: expected one of {KERNELS}")
+    return _batched_kernel(scene, chunk, kernel)(capsules, boxes, active)
 
 
-def frame_contacts(scene: Scene, frames: ArmFrames, active, chunk: int | None = None) -> Contacts:
+def frame_contacts(scene: Scene, frames: ArmFrames, active, chunk: int | None = None, kernel: str | None = None) -> Contacts:
     """:func:`geom_contacts` of arms already posed by :func:`forward_kinematics`."""
-    return geom_contacts(scene, frames.capsules, frames.boxes, active, chunk)
+    return geom_contacts(scene, frames.capsules, frames.boxes, active, chunk, kernel)
 
 
 @functools.cache
-def _batched_kernel(scene: Scene, chunk: int | None):
-    """:func:`_contacts` with a batching rule that folds vmapped axes into its batch."""
+def _batched_kernel(scene: Scene, chunk: int | None, kernel_name: str):
+    """The kernel on a flat batch, with a batching rule that folds vmapped axes into it."""
 
     @jax.custom_batching.custom_vmap
     def kernel(capsules, boxes, active):
-        return _contacts(scene, capsules, boxes, active, chunk)
+        batch, num_arms = capsules.shape[:-4], capsules.shape[-4]
+        flat = (capsules.reshape(-1, *capsules.shape[-4:]), boxes.reshape(-1, *boxes.shape[-4:]),
+                jnp.broadcast_to(active, (*batch, num_arms)).reshape(-1, num_arms))
+        contacts = _numba_contacts(scene, *flat) if kernel_name == "numba" else _contacts(scene, *flat, chunk)
+        return jax.tree.map(lambda x: x.reshape(*batch, num_arms), contacts)
 
     @kernel.def_vmap
     def fold_batch(axis_size, in_batched, *args):
@@ -427,12 +456,29 @@ def _batched_kernel(scene: Scene, chunk: int | None):
     return kernel
 
 
+#: One numba kernel call at a time: XLA may run independent callbacks concurrently, and
+#: numba's default threading layer does not allow concurrent parallel launches.
+_NUMBA_LOCK = threading.Lock()
+
+
+def _numba_contacts(scene: Scene, capsules, boxes, active) -> Contacts:
+    """:func:`compiled.batch_contacts` on a flat batch [N, A, ...], through a host callback."""
+    arm, pairs = scene.arm, scene.pairs
+    constants = (arm.capsule_radius.astype(np.float64), arm.box_half.astype(np.float64),
+                 pairs.self_pairs.astype(np.int64), pairs.between_arms, pairs.ground.astype(np.int64))
+
+    def host(capsules, boxes, active):
+        with _NUMBA_LOCK:
+            out = compiled.batch_contacts(*constants, np.asarray(capsules), np.asarray(boxes), np.asarray(active))
+        return tuple(x.astype(capsules.dtype) for x in out)
+
+    shape = jax.ShapeDtypeStruct(active.shape, capsules.dtype)
+    return Contacts(*jax.pure_callback(host, (shape,) * 3, capsules, boxes, active))
+
+
 def _contacts(scene: Scene, capsules, boxes, active, chunk: int | None) -> Contacts:
-    batch = capsules.shape[:-4]
+    """The XLA kernel on a flat batch: capsules [N, A, ncap, 2, 3], boxes [N, A, nbox, 4, 3], active [N, A]."""
     num_arms = capsules.shape[-4]
-    capsules = capsules.reshape(-1, *capsules.shape[-4:])
-    boxes = boxes.reshape(-1, *boxes.shape[-4:])
-    active = jnp.broadcast_to(active, (*batch, num_arms)).reshape(-1, num_arms)
     n = capsules.shape[0]
     cpu = jax.default_backend() == "cpu"
     if chunk is None:
@@ -456,8 +502,8 @@ def _contacts(scene: Scene, capsules, boxes, active, chunk: int | None) -> Conta
     self_dist, ground = _chunked(functools.partial(_flat_self_and_ground, scene), CPU_SELF_CHUNK if cpu else n,
                                  capsules, boxes)
 
-    def per_arm(x):  # [A, N] -> [*batch, A], inactive arms at +inf
-        return jnp.where(active, x.T, inf).reshape(*batch, num_arms)
+    def per_arm(x):  # [A, N] -> [N, A], inactive arms at +inf
+        return jnp.where(active, x.T, inf)
 
     return Contacts(between_arms=per_arm(between), within_arm=per_arm(self_dist), ground=per_arm(ground))
 

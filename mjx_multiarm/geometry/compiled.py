@@ -1,0 +1,384 @@
+"""The collision model as numba-compiled scalar code: exact geom distances, and a batched
+kernel with a broad phase for the CPU.
+
+The distance formulas are those of :mod:`mjx_multiarm.geometry.collision` (capsule-capsule,
+capsule-box, box-box, signed where geoms overlap), evaluated one pair at a time in float64.
+They serve two callers:
+
+- the expert planner's checker (:mod:`mjx_multiarm.expert.checker`), which asks about one
+  configuration at a time;
+- :func:`batch_contacts`, the CPU kernel behind :func:`~mjx_multiarm.geometry.collision.geom_contacts`:
+  the same per-arm smallest distances as the JAX kernel (float32 geometry in, float32
+  distances out) for a batch of posed scenes, in parallel over scenes. Unlike the JAX
+  kernel, which must evaluate every geom pair of every scene (XLA has no cheap per-scene
+  branch), it skips the pairs that cannot change a result: bounding spheres per geom and
+  boxes per arm, arm pairs visited nearest first, a pair evaluated only while its sphere
+  gap is below the distance still to beat. Every distance it returns is still exact.
+
+Compiled functions are cached on disk by numba (``cache=True``), so worker processes do
+not compile again.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+_jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+
+
+@_jit
+def dot(u, v):
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+@_jit
+def _squared_distance(u, v):
+    return (u[0] - v[0]) ** 2 + (u[1] - v[1]) ** 2 + (u[2] - v[2]) ** 2
+
+
+@_jit
+def segment_distance(p1, q1, p2, q2):
+    """Distance between segments (Ericson 5.1.9, as :func:`mjx_multiarm.geometry.collision.segment_distance`)."""
+    a = e = b = c = f = 0.0
+    for i in range(3):
+        d1, d2, r = q1[i] - p1[i], q2[i] - p2[i], p1[i] - p2[i]
+        a, e, b, c, f = a + d1 * d1, e + d2 * d2, b + d1 * d2, c + d1 * r, f + d2 * r
+    denom = a * e - b * b
+    s = min(max((b * f - c * e) / denom, 0.0), 1.0) if denom > 1e-12 * a * e else 0.0
+    t = (b * s + f) / e
+    if t < 0.0:
+        s = min(max(-c / a, 0.0), 1.0)
+    elif t > 1.0:
+        s = min(max((b - c) / a, 0.0), 1.0)
+    t = min(max(t, 0.0), 1.0)
+    total = 0.0
+    for i in range(3):
+        gap = p1[i] - p2[i] + (q1[i] - p1[i]) * s - (q2[i] - p2[i]) * t
+        total += gap * gap
+    return math.sqrt(total)
+
+
+@_jit
+def _excess(x, h):
+    """How far x lies outside [-h, h] (signed, 0 inside)."""
+    return x - h if x > h else (x + h if x < -h else 0.0)
+
+
+@_jit
+def segment_aabb_distance(a, b, h):
+    """Signed distance from the segment a + t b (t in [0, 1]) to the box |x_k| <= h_k: the
+    breakpoint-bracketed minimum of the convex piecewise-quadratic squared distance, or the
+    depth of the middle of the part inside (as the JAX kernel's ``_segment_aabb_distance``)."""
+    enter, leave = 0.0, 1.0
+    lo_t, lo_g, hi_t, hi_g = -np.inf, -np.inf, np.inf, np.inf
+    for c in range(8):
+        if c < 2:
+            t = float(c)
+        else:
+            k, face = (c - 2) // 2, h[(c - 2) // 2] if c % 2 else -h[(c - 2) // 2]
+            t = 0.0 if abs(b[k]) <= 1e-12 else min(max((face - a[k]) / b[k], 0.0), 1.0)
+        g = 0.0
+        for k in range(3):
+            g += b[k] * _excess(a[k] + t * b[k], h[k])
+        if g <= 0.0:
+            lo_t, lo_g = max(lo_t, t), max(lo_g, g)
+        if g >= 0.0:
+            hi_t, hi_g = min(hi_t, t), min(hi_g, g)
+    for k in range(3):
+        if abs(b[k]) > 1e-12:
+            t1, t2 = (-h[k] - a[k]) / b[k], (h[k] - a[k]) / b[k]
+            enter, leave = max(enter, min(t1, t2)), min(leave, max(t1, t2))
+        elif abs(a[k]) > h[k]:
+            enter = np.inf
+    if enter <= leave:
+        middle, depth = 0.5 * (enter + leave), -np.inf
+        for k in range(3):
+            depth = max(depth, abs(a[k] + middle * b[k]) - h[k])
+        return min(depth, 0.0)
+    if np.isinf(lo_t):
+        best = 0.0
+    elif np.isinf(hi_t):
+        best = 1.0
+    elif hi_t <= lo_t:
+        best = hi_t
+    else:
+        best = lo_t - lo_g * (hi_t - lo_t) / (hi_g - lo_g)
+    total = 0.0
+    for k in range(3):
+        o = _excess(a[k] + best * b[k], h[k])
+        total += o * o
+    return math.sqrt(total)
+
+
+@_jit
+def segment_box_distance(p, q, box, half):
+    """Signed distance from segment [p, q] to a box (frame [4, 3]: centre, unit axes)."""
+    a0 = a1 = a2 = b0 = b1 = b2 = 0.0
+    for m in range(3):
+        rel, d = p[m] - box[0, m], q[m] - p[m]
+        a0, a1, a2 = a0 + rel * box[1, m], a1 + rel * box[2, m], a2 + rel * box[3, m]
+        b0, b1, b2 = b0 + d * box[1, m], b1 + d * box[2, m], b2 + d * box[3, m]
+    return segment_aabb_distance((a0, a1, a2), (b0, b1, b2), (half[0], half[1], half[2]))
+
+
+@_jit
+def box_box_distance(box_a, half_a, box_b, half_b):
+    """Signed distance between boxes (as :func:`mjx_multiarm.geometry.collision.box_box_distance`):
+    separating-axis penetration when they overlap, else A's 12 edges and B's 8 corners."""
+    r = np.empty((3, 3))
+    t = np.empty(3)
+    for i in range(3):
+        t[i] = 0.0
+        for m in range(3):
+            t[i] += (box_b[0, m] - box_a[0, m]) * box_a[i + 1, m]
+        for j in range(3):
+            r[i, j] = dot(box_a[i + 1], box_b[j + 1])
+    ar = np.abs(r) + 1e-6
+    gap = -np.inf
+    for i in range(3):
+        gap = max(gap, abs(t[i]) - half_a[i] - (half_b[0] * ar[i, 0] + half_b[1] * ar[i, 1] + half_b[2] * ar[i, 2]))
+    for j in range(3):
+        gap = max(gap, abs(t[0] * r[0, j] + t[1] * r[1, j] + t[2] * r[2, j]) - half_b[j]
+                  - (half_a[0] * ar[0, j] + half_a[1] * ar[1, j] + half_a[2] * ar[2, j]))
+    for i in range(3):
+        i1, i2 = (i + 1) % 3, (i + 2) % 3
+        for j in range(3):
+            j1, j2 = (j + 1) % 3, (j + 2) % 3
+            centre = abs(t[i2] * r[i1, j] - t[i1] * r[i2, j])
+            extent = half_a[i1] * ar[i2, j] + half_a[i2] * ar[i1, j] + half_b[j1] * ar[i, j2] + half_b[j2] * ar[i, j1]
+            gap = max(gap, (centre - extent) / (math.sqrt(max(1.0 - r[i, j] ** 2, 0.0)) + 1e-6))
+    if gap < 0.0:
+        return gap
+    nearest = np.inf
+    centre_in_b = np.empty(3)
+    for j in range(3):
+        centre_in_b[j] = -(t[0] * r[0, j] + t[1] * r[1, j] + t[2] * r[2, j])
+    start, step = np.empty(3), np.empty(3)
+    for k in range(3):
+        i1, i2 = (k + 1) % 3, (k + 2) % 3
+        for s1 in (-1.0, 1.0):
+            for s2 in (-1.0, 1.0):
+                for j in range(3):
+                    start[j] = (centre_in_b[j] + s1 * half_a[i1] * r[i1, j] + s2 * half_a[i2] * r[i2, j]
+                                - half_a[k] * r[k, j])
+                    step[j] = 2.0 * half_a[k] * r[k, j]
+                nearest = min(nearest, segment_aabb_distance(start, step, half_b))
+    for s0 in (-1.0, 1.0):
+        for s1 in (-1.0, 1.0):
+            for s2 in (-1.0, 1.0):
+                total = 0.0
+                for i in range(3):
+                    o = _excess(t[i] + s0 * half_b[0] * r[i, 0] + s1 * half_b[1] * r[i, 1] + s2 * half_b[2] * r[i, 2], half_a[i])
+                    total += o * o
+                nearest = min(nearest, math.sqrt(total))
+    return nearest
+
+
+@_jit
+def geom_distance(capsules_a, boxes_a, ga, capsules_b, boxes_b, gb, radius, box_half):
+    """Signed distance of geom ``ga`` of arm A and geom ``gb`` of arm B (capsules, then boxes)."""
+    ncap = radius.shape[0]
+    if ga < ncap and gb < ncap:
+        return segment_distance(capsules_a[ga, 0], capsules_a[ga, 1], capsules_b[gb, 0], capsules_b[gb, 1]) \
+            - radius[ga] - radius[gb]
+    if ga >= ncap and gb >= ncap:
+        return box_box_distance(boxes_a[ga - ncap], box_half[ga - ncap], boxes_b[gb - ncap], box_half[gb - ncap])
+    if ga < ncap:
+        return segment_box_distance(capsules_a[ga, 0], capsules_a[ga, 1], boxes_b[gb - ncap], box_half[gb - ncap]) - radius[ga]
+    return segment_box_distance(capsules_b[gb, 0], capsules_b[gb, 1], boxes_a[ga - ncap], box_half[ga - ncap]) - radius[gb]
+
+
+@_jit
+def bounding_spheres(capsules, boxes, radius, box_half, centres, radii):
+    """Per geom of one arm, a bounding sphere centred inside the geom (written in place)."""
+    ncap = radius.shape[0]
+    for c in range(ncap):
+        length2 = 0.0
+        for i in range(3):
+            centres[c, i] = 0.5 * (capsules[c, 0, i] + capsules[c, 1, i])
+            length2 += (capsules[c, 1, i] - capsules[c, 0, i]) ** 2
+        radii[c] = 0.5 * math.sqrt(length2) + radius[c]
+    for x in range(boxes.shape[0]):
+        centres[ncap + x] = boxes[x, 0]
+        radii[ncap + x] = math.sqrt(dot(box_half[x], box_half[x]))
+
+
+@_jit
+def ground_distance(capsules, boxes, radius, box_half, ground):
+    """The lowest point of one arm's ground-checked geoms: capsule ends minus the radius, box corners."""
+    ncap, low = radius.shape[0], np.inf
+    for g in ground:
+        if g < ncap:
+            low = min(low, min(capsules[g, 0, 2], capsules[g, 1, 2]) - radius[g])
+        else:
+            x = g - ncap
+            corner = boxes[x, 0, 2]
+            for a in range(3):
+                corner -= box_half[x, a] * abs(boxes[x, a + 1, 2])
+            low = min(low, corner)
+    return low
+
+
+@_jit
+def _self_distance(capsules, boxes, centres, radii, radius, box_half, pairs):
+    """The smallest distance over one arm's self pairs: the pair of nearest centres first,
+    then only the pairs whose sphere gap is below the distance to beat."""
+    seed, seed_d2 = 0, np.inf
+    for p in range(pairs.shape[0]):
+        d2 = _squared_distance(centres[pairs[p, 0]], centres[pairs[p, 1]])
+        if d2 < seed_d2:
+            seed, seed_d2 = p, d2
+    best = geom_distance(capsules, boxes, pairs[seed, 0], capsules, boxes, pairs[seed, 1], radius, box_half)
+    for p in range(pairs.shape[0]):
+        a, b = pairs[p, 0], pairs[p, 1]
+        reach = max(best, 0.0) + radii[a] + radii[b]
+        if p != seed and _squared_distance(centres[a], centres[b]) < reach * reach:
+            best = min(best, geom_distance(capsules, boxes, a, capsules, boxes, b, radius, box_half))
+    return best
+
+
+@_jit
+def _near_geoms(centres, radii, reach, lo, hi, out):
+    """The geoms (of one arm) whose sphere comes within ``reach`` of the box [lo, hi]; their
+    count, indices written to ``out``."""
+    count = 0
+    for g in range(radii.shape[0]):
+        e = reach + radii[g]
+        near = True
+        for m in range(3):
+            near = near and centres[g, m] + e >= lo[m] and centres[g, m] - e <= hi[m]
+        if near:
+            out[count] = g
+            count += 1
+    return count
+
+
+@_jit
+def _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_half, mask, best, near_i, near_j,
+                  cand_a, cand_b, cand_d2, cand_r):
+    """Lower ``best[i]`` and ``best[j]`` to the distance of arms i and j where it is smaller.
+
+    A geom pair is skipped when its sphere gap is at least ``bound`` (and not negative):
+    the larger of the two arms' current bests (a pair beyond it lowers neither), or less,
+    an upper bound of this arm pair's distance, the distance between two of their geoms'
+    centres (every geom contains its centre).
+    """
+    bound = max(best[i], best[j])
+    ng = radii.shape[1]
+    ga = gb = 0
+    da = db = np.inf
+    for g in range(ng):  # each arm's geom nearest the other arm's box
+        ea = eb = 0.0
+        for m in range(3):
+            ea += max(lo[j, m] - centres[i, g, m], centres[i, g, m] - hi[j, m], 0.0) ** 2
+            eb += max(lo[i, m] - centres[j, g, m], centres[j, g, m] - hi[i, m], 0.0) ** 2
+        if ea < da:
+            ga, da = g, ea
+        if eb < db:
+            gb, db = g, eb
+    bound = min(bound, math.sqrt(_squared_distance(centres[i, ga], centres[j, gb])))
+    reach = max(bound, 0.0)
+    ni = _near_geoms(centres[i], radii[i], reach, lo[j], hi[j], near_i)
+    nj = _near_geoms(centres[j], radii[j], reach, lo[i], hi[i], near_j)
+    count, seed, seed_d2 = 0, 0, np.inf
+    for x in range(ni):
+        a = near_i[x]
+        for y in range(nj):
+            b = near_j[y]
+            d2 = _squared_distance(centres[i, a], centres[j, b])
+            spheres = radii[i, a] + radii[j, b]
+            if mask[a, b] and d2 < (reach + spheres) ** 2:
+                cand_a[count], cand_b[count], cand_d2[count], cand_r[count] = a, b, d2, spheres
+                if d2 < seed_d2:
+                    seed, seed_d2 = count, d2
+                count += 1
+    for k in range(-1, count):  # the pair of nearest centres first
+        p = seed if k < 0 else k
+        limit = max(min(max(best[i], best[j]), bound), 0.0) + cand_r[p]
+        if k < 0 or (k != seed and cand_d2[p] < limit * limit):
+            d = geom_distance(capsules[i], boxes[i], cand_a[p], capsules[j], boxes[j], cand_b[p], radius, box_half)
+            best[i], best[j] = min(best[i], d), min(best[j], d)
+
+
+@_jit
+def _scene_contacts(capsules, boxes, active, radius, box_half, self_pairs, mask, ground, between, within, low,
+                    centres, radii, lo, hi, near_i, near_j, cand_a, cand_b, cand_d2, cand_r, gaps, first, second):
+    """One posed scene's per-arm smallest distances, written to ``between``, ``within`` and
+    ``low`` [A] (``inf`` for inactive arms); the other arguments after them are work arrays."""
+    num_arms = capsules.shape[0]
+    pairs = 0
+    for i in range(num_arms):
+        between[i] = within[i] = low[i] = np.inf
+        if not active[i]:
+            continue
+        bounding_spheres(capsules[i], boxes[i], radius, box_half, centres[i], radii[i])
+        for m in range(3):
+            lo[i, m], hi[i, m] = np.inf, -np.inf
+            for g in range(radii.shape[1]):
+                lo[i, m] = min(lo[i, m], centres[i, g, m] - radii[i, g])
+                hi[i, m] = max(hi[i, m], centres[i, g, m] + radii[i, g])
+        low[i] = ground_distance(capsules[i], boxes[i], radius, box_half, ground)
+        if self_pairs.shape[0]:
+            within[i] = _self_distance(capsules[i], boxes[i], centres[i], radii[i], radius, box_half, self_pairs)
+        for j in range(i):  # arm pairs, keyed by the squared gap of the arms' boxes
+            if active[j]:
+                gap2 = 0.0
+                for m in range(3):
+                    gap2 += max(lo[j, m] - hi[i, m], lo[i, m] - hi[j, m], 0.0) ** 2
+                first[pairs], second[pairs], gaps[pairs] = j, i, gap2
+                pairs += 1
+    for o in np.argsort(gaps[:pairs]):  # nearest first: every arm soon has a finite distance to beat
+        i, j = first[o], second[o]
+        bound = max(between[i], between[j])
+        if gaps[o] > 0.0 and gaps[o] >= max(bound, 0.0) ** 2:
+            continue
+        _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_half, mask, between, near_i, near_j,
+                      cand_a, cand_b, cand_d2, cand_r)
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _batch(capsules, boxes, active, radius, box_half, self_pairs, mask, ground):
+    n, num_arms = capsules.shape[0], capsules.shape[1]
+    ngeom = radius.shape[0] + boxes.shape[2]
+    between = np.empty((n, num_arms), np.float32)
+    within = np.empty((n, num_arms), np.float32)
+    low = np.empty((n, num_arms), np.float32)
+    chunks = min(n, 64)
+    for c in numba.prange(chunks):  # work arrays once per chunk of scenes
+        out = np.empty((3, num_arms))
+        posed_capsules, posed_boxes = np.empty(capsules.shape[1:]), np.empty(boxes.shape[1:])  # float64
+        centres, radii = np.empty((num_arms, ngeom, 3)), np.empty((num_arms, ngeom))
+        lo, hi = np.empty((num_arms, 3)), np.empty((num_arms, 3))
+        near_i, near_j = np.empty(ngeom, np.int64), np.empty(ngeom, np.int64)
+        cand_a, cand_b = np.empty(ngeom * ngeom, np.int64), np.empty(ngeom * ngeom, np.int64)
+        cand_d2, cand_r = np.empty(ngeom * ngeom), np.empty(ngeom * ngeom)
+        gaps = np.empty(num_arms * num_arms)
+        first, second = np.empty(num_arms * num_arms, np.int64), np.empty(num_arms * num_arms, np.int64)
+        for s in range(c * n // chunks, (c + 1) * n // chunks):
+            posed_capsules[:], posed_boxes[:] = capsules[s], boxes[s]
+            _scene_contacts(posed_capsules, posed_boxes, active[s], radius, box_half, self_pairs, mask, ground,
+                            out[0], out[1], out[2], centres, radii, lo, hi, near_i, near_j, cand_a, cand_b, cand_d2,
+                            cand_r, gaps, first, second)
+            for i in range(num_arms):
+                between[s, i], within[s, i], low[s, i] = out[0, i], out[1, i], out[2, i]
+    return between, within, low
+
+
+def batch_contacts(radius, box_half, self_pairs, between_mask, ground, capsules, boxes, active):
+    """Per-arm smallest signed distances of posed scenes, in parallel over scenes.
+
+    Args:
+      radius: [ncap] capsule radii; box_half: [nbox, 3] box half sizes.
+      self_pairs: [nself, 2] int geom pairs within an arm; between_mask: [ngeom, ngeom]
+        symmetric bool, the geom pairs checked between two arms; ground: [nground] int geoms.
+      capsules: [N, A, ncap, 2, 3] world capsule ends; boxes: [N, A, nbox, 4, 3] world box
+        frames (centre, unit axes); active: [N, A] bool.
+
+    Returns:
+      (between_arms, within_arm, ground), each [N, A] float32, ``inf`` where an arm has no
+      such pair (inactive slots, a lone arm's ``between_arms``).
+    """
+    return _batch(capsules, boxes, active, radius, box_half, self_pairs, between_mask, ground)
