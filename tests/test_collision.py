@@ -271,6 +271,31 @@ def test_numba_and_xla_kernels_give_the_same_distances():
     assert 0.1 < xla.collided[active].mean() < 0.9 and np.isinf(xla.between_arms[~active]).all()
 
 
+@pytest.mark.parametrize("with_end_frames", [False, True])
+def test_swept_checks_agree_between_kernels(monkeypatch, with_end_frames):
+    """The numba kernel's swept check (one call over the substeps, each substep's distances
+    bounding the next's) gives each arm the XLA kernel's smallest distance over them."""
+    rng = np.random.default_rng(5)
+    scene = build_scene(4)
+    bases, start, active = random_padded_scenes(rng, 64, 4)
+    end = start + rng.uniform(-0.3, 0.3, start.shape)
+    pos, quat = base_pose_arrays(bases)
+    start, end = jnp.asarray(start, jnp.float32), jnp.asarray(end, jnp.float32)
+    end_frames = forward_kinematics(scene.arm, pos, quat, end) if with_end_frames else None
+
+    def swept(kernel):
+        monkeypatch.setenv(KERNEL_VARIABLE, kernel)
+        check = jax.jit(lambda *a: swept_contacts(scene, *a, substeps=6, end_frames=end_frames))
+        return jax.tree.map(np.asarray, check(pos, quat, start, end, active))
+
+    xla, compiled = swept("xla"), swept("numba")
+    for field in ("between_arms", "within_arm", "ground"):
+        a, b = getattr(compiled, field), getattr(xla, field)
+        np.testing.assert_array_equal(np.isinf(a), np.isinf(b), err_msg=field)
+        np.testing.assert_allclose(a[np.isfinite(b)], b[np.isfinite(b)], atol=2e-6, err_msg=field)
+    assert 0.1 < xla.collided[active].mean() < 0.9
+
+
 @settings(max_examples=10)
 @given(st.floats(-5, 5), st.floats(-5, 5), st.floats(-np.pi, np.pi), st.integers(0, 2**31 - 1))
 def test_planar_rigid_motion_of_the_whole_scene_changes_nothing(dx, dy, yaw, seed):

@@ -436,15 +436,25 @@ def frame_contacts(scene: Scene, frames: ArmFrames, active, chunk: int | None = 
 
 
 @functools.cache
-def _batched_kernel(scene: Scene, chunk: int | None, kernel_name: str):
-    """The kernel on a flat batch, with a batching rule that folds vmapped axes into it."""
+def _batched_kernel(scene: Scene, chunk: int | None, kernel_name: str, swept: bool = False):
+    """The kernel on a flat batch, with a batching rule that folds vmapped axes into it.
+
+    ``swept``: the posed geoms carry a configurations axis before the arms ([..., S, A, ...]),
+    and the result is each arm's smallest distance over them (numba kernel only).
+    """
+    geom_dims = 5 if swept else 4
 
     @jax.custom_batching.custom_vmap
     def kernel(capsules, boxes, active):
-        batch, num_arms = capsules.shape[:-4], capsules.shape[-4]
-        flat = (capsules.reshape(-1, *capsules.shape[-4:]), boxes.reshape(-1, *boxes.shape[-4:]),
-                jnp.broadcast_to(active, (*batch, num_arms)).reshape(-1, num_arms))
-        contacts = _numba_contacts(scene, *flat) if kernel_name == "numba" else _contacts(scene, *flat, chunk)
+        batch, num_arms = capsules.shape[:-geom_dims], capsules.shape[-4]
+        capsules = capsules.reshape(-1, *capsules.shape[-geom_dims:])
+        boxes = boxes.reshape(-1, *boxes.shape[-geom_dims:])
+        active = jnp.broadcast_to(active, (*batch, num_arms)).reshape(-1, num_arms)
+        if kernel_name == "numba":
+            steps = (capsules, boxes) if swept else (capsules[:, None], boxes[:, None])
+            contacts = _numba_contacts(scene, *steps, active)
+        else:
+            contacts = _contacts(scene, capsules, boxes, active, chunk)
         return jax.tree.map(lambda x: x.reshape(*batch, num_arms), contacts)
 
     @kernel.def_vmap
@@ -462,7 +472,7 @@ _NUMBA_LOCK = threading.Lock()
 
 
 def _numba_contacts(scene: Scene, capsules, boxes, active) -> Contacts:
-    """:func:`compiled.batch_contacts` on a flat batch [N, A, ...], through a host callback."""
+    """:func:`compiled.batch_contacts` on a flat batch [N, S, A, ...] (min over S), through a host callback."""
     arm, pairs = scene.arm, scene.pairs
     constants = (arm.capsule_radius.astype(np.float64), arm.box_half.astype(np.float64),
                  pairs.self_pairs.astype(np.int64), pairs.between_arms, pairs.ground.astype(np.int64))
@@ -552,6 +562,16 @@ def swept_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, ac
     """
     inner = substeps if end_frames is None else substeps - 1
     fractions = jnp.arange(1, inner + 1, dtype=jnp.result_type(joints_from)) / substeps
+    if default_kernel() == "numba":  # one call over all configurations: each one's distances bound the next's
+        def pose(fraction):
+            return forward_kinematics(scene.arm, base_pos, base_quat, joints_from + fraction * (joints_to - joints_from))
+
+        frames = [jax.vmap(pose)(fractions)] if inner else []
+        if end_frames is not None:
+            frames.append(jax.tree.map(lambda x: x[None], end_frames))
+        capsules, boxes = (jnp.moveaxis(jnp.concatenate([getattr(f, name) for f in frames]), 0, -5)
+                           for name in ("capsules", "boxes"))
+        return _batched_kernel(scene, None, "numba", swept=True)(capsules, boxes, active)
 
     def at(fraction):
         joints = joints_from + fraction * (joints_to - joints_from)

@@ -223,15 +223,18 @@ def ground_distance(capsules, boxes, radius, box_half, ground):
 
 
 @_jit
-def _self_distance(capsules, boxes, centres, radii, radius, box_half, pairs):
-    """The smallest distance over one arm's self pairs: the pair of nearest centres first,
-    then only the pairs whose sphere gap is below the distance to beat."""
-    seed, seed_d2 = 0, np.inf
-    for p in range(pairs.shape[0]):
-        d2 = _squared_distance(centres[pairs[p, 0]], centres[pairs[p, 1]])
-        if d2 < seed_d2:
-            seed, seed_d2 = p, d2
-    best = geom_distance(capsules, boxes, pairs[seed, 0], capsules, boxes, pairs[seed, 1], radius, box_half)
+def _self_distance(capsules, boxes, centres, radii, radius, box_half, pairs, best):
+    """The smaller of ``best`` and the smallest distance over one arm's self pairs: the pair
+    of nearest centres first, then only the pairs whose sphere gap is below the distance to
+    beat."""
+    seed = -1
+    if best == np.inf:  # no bound yet
+        seed, seed_d2 = 0, np.inf
+        for p in range(pairs.shape[0]):
+            d2 = _squared_distance(centres[pairs[p, 0]], centres[pairs[p, 1]])
+            if d2 < seed_d2:
+                seed, seed_d2 = p, d2
+        best = geom_distance(capsules, boxes, pairs[seed, 0], capsules, boxes, pairs[seed, 1], radius, box_half)
     for p in range(pairs.shape[0]):
         a, b = pairs[p, 0], pairs[p, 1]
         reach = max(best, 0.0) + radii[a] + radii[b]
@@ -262,24 +265,25 @@ def _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_hal
     """Lower ``best[i]`` and ``best[j]`` to the distance of arms i and j where it is smaller.
 
     A geom pair is skipped when its sphere gap is at least ``bound`` (and not negative):
-    the larger of the two arms' current bests (a pair beyond it lowers neither), or less,
-    an upper bound of this arm pair's distance, the distance between two of their geoms'
-    centres (every geom contains its centre).
+    the larger of the two arms' current bests (a pair beyond it lowers neither) or, while
+    one of them has none, an upper bound of this arm pair's distance: the distance between
+    two of their geoms' centres (every geom contains its centre).
     """
     bound = max(best[i], best[j])
     ng = radii.shape[1]
-    ga = gb = 0
-    da = db = np.inf
-    for g in range(ng):  # each arm's geom nearest the other arm's box
-        ea = eb = 0.0
-        for m in range(3):
-            ea += max(lo[j, m] - centres[i, g, m], centres[i, g, m] - hi[j, m], 0.0) ** 2
-            eb += max(lo[i, m] - centres[j, g, m], centres[j, g, m] - hi[i, m], 0.0) ** 2
-        if ea < da:
-            ga, da = g, ea
-        if eb < db:
-            gb, db = g, eb
-    bound = min(bound, math.sqrt(_squared_distance(centres[i, ga], centres[j, gb])))
+    if bound == np.inf:
+        ga = gb = 0
+        da = db = np.inf
+        for g in range(ng):  # each arm's geom nearest the other arm's box
+            ea = eb = 0.0
+            for m in range(3):
+                ea += max(lo[j, m] - centres[i, g, m], centres[i, g, m] - hi[j, m], 0.0) ** 2
+                eb += max(lo[i, m] - centres[j, g, m], centres[j, g, m] - hi[i, m], 0.0) ** 2
+            if ea < da:
+                ga, da = g, ea
+            if eb < db:
+                gb, db = g, eb
+        bound = math.sqrt(_squared_distance(centres[i, ga], centres[j, gb]))
     reach = max(bound, 0.0)
     ni = _near_geoms(centres[i], radii[i], reach, lo[j], hi[j], near_i)
     nj = _near_geoms(centres[j], radii[j], reach, lo[i], hi[i], near_j)
@@ -298,7 +302,7 @@ def _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_hal
     for k in range(-1, count):  # the pair of nearest centres first
         p = seed if k < 0 else k
         limit = max(min(max(best[i], best[j]), bound), 0.0) + cand_r[p]
-        if k < 0 or (k != seed and cand_d2[p] < limit * limit):
+        if k != seed and cand_d2[p] < limit * limit:
             d = geom_distance(capsules[i], boxes[i], cand_a[p], capsules[j], boxes[j], cand_b[p], radius, box_half)
             best[i], best[j] = min(best[i], d), min(best[j], d)
 
@@ -306,12 +310,13 @@ def _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_hal
 @_jit
 def _scene_contacts(capsules, boxes, active, radius, box_half, self_pairs, mask, ground, between, within, low,
                     centres, radii, lo, hi, near_i, near_j, cand_a, cand_b, cand_d2, cand_r, gaps, first, second):
-    """One posed scene's per-arm smallest distances, written to ``between``, ``within`` and
-    ``low`` [A] (``inf`` for inactive arms); the other arguments after them are work arrays."""
+    """Lower ``between``, ``within`` and ``low`` [A] (per arm) to one posed scene's smallest
+    distances where they are smaller; inactive arms are left as they are. The arguments
+    after them are work arrays. Pairs that cannot lower a value are skipped, so a caller
+    that wants the minimum over several configurations passes the running minimum."""
     num_arms = capsules.shape[0]
     pairs = 0
     for i in range(num_arms):
-        between[i] = within[i] = low[i] = np.inf
         if not active[i]:
             continue
         bounding_spheres(capsules[i], boxes[i], radius, box_half, centres[i], radii[i])
@@ -320,9 +325,10 @@ def _scene_contacts(capsules, boxes, active, radius, box_half, self_pairs, mask,
             for g in range(radii.shape[1]):
                 lo[i, m] = min(lo[i, m], centres[i, g, m] - radii[i, g])
                 hi[i, m] = max(hi[i, m], centres[i, g, m] + radii[i, g])
-        low[i] = ground_distance(capsules[i], boxes[i], radius, box_half, ground)
+        low[i] = min(low[i], ground_distance(capsules[i], boxes[i], radius, box_half, ground))
         if self_pairs.shape[0]:
-            within[i] = _self_distance(capsules[i], boxes[i], centres[i], radii[i], radius, box_half, self_pairs)
+            within[i] = _self_distance(capsules[i], boxes[i], centres[i], radii[i], radius, box_half, self_pairs,
+                                       within[i])
         for j in range(i):  # arm pairs, keyed by the squared gap of the arms' boxes
             if active[j]:
                 gap2 = 0.0
@@ -341,15 +347,15 @@ def _scene_contacts(capsules, boxes, active, radius, box_half, self_pairs, mask,
 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def _batch(capsules, boxes, active, radius, box_half, self_pairs, mask, ground):
-    n, num_arms = capsules.shape[0], capsules.shape[1]
-    ngeom = radius.shape[0] + boxes.shape[2]
+    n, steps, num_arms = capsules.shape[0], capsules.shape[1], capsules.shape[2]
+    ngeom = radius.shape[0] + boxes.shape[3]
     between = np.empty((n, num_arms), np.float32)
     within = np.empty((n, num_arms), np.float32)
     low = np.empty((n, num_arms), np.float32)
     chunks = min(n, 64)
     for c in numba.prange(chunks):  # work arrays once per chunk of scenes
         out = np.empty((3, num_arms))
-        posed_capsules, posed_boxes = np.empty(capsules.shape[1:]), np.empty(boxes.shape[1:])  # float64
+        posed_capsules, posed_boxes = np.empty(capsules.shape[2:]), np.empty(boxes.shape[2:])  # float64
         centres, radii = np.empty((num_arms, ngeom, 3)), np.empty((num_arms, ngeom))
         lo, hi = np.empty((num_arms, 3)), np.empty((num_arms, 3))
         near_i, near_j = np.empty(ngeom, np.int64), np.empty(ngeom, np.int64)
@@ -358,27 +364,31 @@ def _batch(capsules, boxes, active, radius, box_half, self_pairs, mask, ground):
         gaps = np.empty(num_arms * num_arms)
         first, second = np.empty(num_arms * num_arms, np.int64), np.empty(num_arms * num_arms, np.int64)
         for s in range(c * n // chunks, (c + 1) * n // chunks):
-            posed_capsules[:], posed_boxes[:] = capsules[s], boxes[s]
-            _scene_contacts(posed_capsules, posed_boxes, active[s], radius, box_half, self_pairs, mask, ground,
-                            out[0], out[1], out[2], centres, radii, lo, hi, near_i, near_j, cand_a, cand_b, cand_d2,
-                            cand_r, gaps, first, second)
+            out[:] = np.inf
+            for k in range(steps):  # the running minimum over the configurations prunes the later ones
+                posed_capsules[:], posed_boxes[:] = capsules[s, k], boxes[s, k]
+                _scene_contacts(posed_capsules, posed_boxes, active[s], radius, box_half, self_pairs, mask, ground,
+                                out[0], out[1], out[2], centres, radii, lo, hi, near_i, near_j, cand_a, cand_b,
+                                cand_d2, cand_r, gaps, first, second)
             for i in range(num_arms):
                 between[s, i], within[s, i], low[s, i] = out[0, i], out[1, i], out[2, i]
     return between, within, low
 
 
 def batch_contacts(radius, box_half, self_pairs, between_mask, ground, capsules, boxes, active):
-    """Per-arm smallest signed distances of posed scenes, in parallel over scenes.
+    """Per-arm smallest signed distances of posed scenes, each over one or more of its
+    configurations (the substeps of a swept check), in parallel over scenes.
 
     Args:
       radius: [ncap] capsule radii; box_half: [nbox, 3] box half sizes.
       self_pairs: [nself, 2] int geom pairs within an arm; between_mask: [ngeom, ngeom]
         symmetric bool, the geom pairs checked between two arms; ground: [nground] int geoms.
-      capsules: [N, A, ncap, 2, 3] world capsule ends; boxes: [N, A, nbox, 4, 3] world box
-        frames (centre, unit axes); active: [N, A] bool.
+      capsules: [N, S, A, ncap, 2, 3] world capsule ends of N scenes in S configurations;
+        boxes: [N, S, A, nbox, 4, 3] world box frames (centre, unit axes); active: [N, A] bool.
 
     Returns:
-      (between_arms, within_arm, ground), each [N, A] float32, ``inf`` where an arm has no
-      such pair (inactive slots, a lone arm's ``between_arms``).
+      (between_arms, within_arm, ground), each [N, A] float32: the smallest over the S
+      configurations; ``inf`` where an arm has no such pair (inactive slots, a lone arm's
+      ``between_arms``).
     """
     return _batch(capsules, boxes, active, radius, box_half, self_pairs, between_mask, ground)
