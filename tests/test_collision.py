@@ -22,7 +22,12 @@ from mjx_multiarm import (
     scene_contacts,
     swept_contacts,
 )
-from mjx_multiarm.geometry.collision import KERNEL_VARIABLE, KERNELS, frame_contacts, geom_clearances
+from mjx_multiarm.geometry.collision import (
+    KERNEL_VARIABLE,
+    KERNELS,
+    frame_contacts,
+    geom_clearances,
+)
 from mjx_multiarm.geometry.evaluate import base_pose_arrays
 from mjx_multiarm.geometry.scene import build_scene, set_mujoco_state
 

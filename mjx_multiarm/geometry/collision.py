@@ -19,8 +19,8 @@ Two kernels compute these distances (:data:`KERNELS`): ``"xla"``, the JAX code b
 any backend (coordinates as separate x/y/z arrays, so that XLA fuses each check into one
 elementwise loop over all pairs of all scenes), and ``"numba"``, the same distances compiled
 for the CPU with a broad phase (:func:`mjx_multiarm.geometry.compiled.batch_contacts`),
-called from traced code through ``jax.pure_callback``. :func:`default_kernel` picks numba on
-the CPU backend and XLA elsewhere.
+called from traced code through ``jax.pure_callback``. :func:`default_kernel` picks numba for
+multi-arm scenes on the CPU backend and XLA otherwise.
 """
 
 from __future__ import annotations
@@ -396,10 +396,13 @@ def geom_clearances(scene: Scene, capsules, boxes, other_capsules, other_boxes) 
     return jnp.concatenate(rows, axis=0).T.reshape(*batch, -1)
 
 
-def default_kernel() -> str:
-    """``$MJX_MULTIARM_COLLISION_KERNEL`` if set, else ``"numba"`` on the CPU backend and
-    ``"xla"`` on accelerators (read when a function is traced)."""
-    kernel = os.environ.get(KERNEL_VARIABLE) or ("numba" if jax.default_backend() == "cpu" else "xla")
+def default_kernel(max_arms: int) -> str:
+    """``$MJX_MULTIARM_COLLISION_KERNEL`` if set (read when a function is traced), else
+    ``"numba"`` for multi-arm scenes on the CPU backend and ``"xla"`` otherwise: with one
+    arm there are no pairs between arms to skip, and the XLA kernel was faster (2.5x on
+    the core benchmark, ``benchmarks/RESULTS.md``)."""
+    numba_wins = jax.default_backend() == "cpu" and max_arms > 1
+    kernel = os.environ.get(KERNEL_VARIABLE) or ("numba" if numba_wins else "xla")
     if kernel not in KERNELS:
         raise ValueError(f"{KERNEL_VARIABLE}={kernel!r}: expected one of {KERNELS}")
     return kernel
@@ -424,7 +427,7 @@ def geom_contacts(scene: Scene, capsules, boxes, active, chunk: int | None = Non
     whole batch of scenes at once (vectorized over scenes, chunked on CPU), however it is
     called.
     """
-    kernel = kernel or default_kernel()
+    kernel = kernel or default_kernel(scene.max_arms)
     if kernel not in KERNELS:
         raise ValueError(f"kernel {kernel!r}: expected one of {KERNELS}")
     return _batched_kernel(scene, chunk, kernel)(capsules, boxes, active)
@@ -562,7 +565,7 @@ def swept_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, ac
     """
     inner = substeps if end_frames is None else substeps - 1
     fractions = jnp.arange(1, inner + 1, dtype=jnp.result_type(joints_from)) / substeps
-    if default_kernel() == "numba":  # one call over all configurations: each one's distances bound the next's
+    if default_kernel(scene.max_arms) == "numba":  # one call over all configurations: each one's distances bound the next's
         def pose(fraction):
             return forward_kinematics(scene.arm, base_pos, base_quat, joints_from + fraction * (joints_to - joints_from))
 
