@@ -427,8 +427,9 @@ def geom_contacts(scene: Scene, capsules, boxes, active, chunk: int | None = Non
     whole batch of scenes at once (vectorized over scenes, chunked on CPU), however it is
     called.
     """
-    kernel = kernel or default_kernel(scene.max_arms)
-    if kernel not in KERNELS:
+    if kernel is None:
+        kernel = default_kernel(scene.max_arms)
+    elif kernel not in KERNELS:
         raise ValueError(f"kernel {kernel!r}: expected one of {KERNELS}")
     return _batched_kernel(scene, chunk, kernel)(capsules, boxes, active)
 
@@ -483,7 +484,7 @@ def _numba_contacts(scene: Scene, capsules, boxes, active) -> Contacts:
     def host(capsules, boxes, active):
         with _NUMBA_LOCK:
             out = compiled.batch_contacts(*constants, np.asarray(capsules), np.asarray(boxes), np.asarray(active))
-        return tuple(x.astype(capsules.dtype) for x in out)
+        return tuple(x.astype(capsules.dtype, copy=False) for x in out)
 
     shape = jax.ShapeDtypeStruct(active.shape, capsules.dtype)
     return Contacts(*jax.pure_callback(host, (shape,) * 3, capsules, boxes, active))
@@ -565,11 +566,12 @@ def swept_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, ac
     """
     inner = substeps if end_frames is None else substeps - 1
     fractions = jnp.arange(1, inner + 1, dtype=jnp.result_type(joints_from)) / substeps
-    if default_kernel(scene.max_arms) == "numba":  # one call over all configurations: each one's distances bound the next's
-        def pose(fraction):
-            return forward_kinematics(scene.arm, base_pos, base_quat, joints_from + fraction * (joints_to - joints_from))
 
-        frames = [jax.vmap(pose)(fractions)] if inner else []
+    def joints_at(fraction):
+        return joints_from + fraction * (joints_to - joints_from)
+
+    if default_kernel(scene.max_arms) == "numba":  # one call over all configurations: each one's distances bound the next's
+        frames = [jax.vmap(lambda f: forward_kinematics(scene.arm, base_pos, base_quat, joints_at(f)))(fractions)] if inner else []
         if end_frames is not None:
             frames.append(jax.tree.map(lambda x: x[None], end_frames))
         capsules, boxes = (jnp.moveaxis(jnp.concatenate([getattr(f, name) for f in frames]), 0, -5)
@@ -577,8 +579,7 @@ def swept_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, ac
         return _batched_kernel(scene, None, "numba", swept=True)(capsules, boxes, active)
 
     def at(fraction):
-        joints = joints_from + fraction * (joints_to - joints_from)
-        return scene_contacts(scene, base_pos, base_quat, joints, active)
+        return scene_contacts(scene, base_pos, base_quat, joints_at(fraction), active)
 
     per_step = [jax.tree.map(lambda x: x.min(axis=0), jax.vmap(at)(fractions))] if inner else []
     if end_frames is not None:
