@@ -9,6 +9,9 @@ import numpy as np
 import pytest
 
 from mjx_multiarm import scene_contacts
+from mjx_multiarm.expert.planner import PlannerConfig
+from mjx_multiarm.expert.solve import straight_motion_free
+from mjx_multiarm.geometry.collision import frame_contacts
 from mjx_multiarm.geometry.ik import solve_positions
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import REACH, load_arm
@@ -25,6 +28,7 @@ from mjx_multiarm.tasks.generate import (
     sample_bases_original,
     spec_record,
 )
+from mjx_multiarm.tasks.select import detour_rows
 from mjx_multiarm.tasks.types import (
     DIFFICULTY_BINS,
     SPEED_BINS,
@@ -268,3 +272,61 @@ def test_dynamic_target_moves_at_constant_speed_and_stops_at_the_goal(generated)
     end_pos, end_quat, s = target_at(arm, *args, lengths, speed * 1e3)
     np.testing.assert_allclose(np.asarray(end_pos)[tasks.active], tasks.target_pos[tasks.active], atol=1e-5)
     assert np.all(np.asarray(s) == 1.0)
+
+
+# --- detour tasks -------------------------------------------------------------------------
+
+
+def test_straight_motion_free_matches_the_xla_kernel_along_the_motion(generated):
+    """The expert checker's straight-motion verdict (numba, float64) against the XLA kernel
+    evaluated at the same configurations (float32); near-contact paths are left out."""
+    free = straight_motion_free(generated)
+    start, goal = np.asarray(generated.start_joints, np.float64), np.asarray(generated.goal_joints, np.float64)
+    active = np.asarray(generated.active)
+    steps = np.maximum(1, np.ceil(np.max(np.abs(goal - start) * active[..., None], axis=(1, 2)) / PlannerConfig.resolution - 1e-9))
+    fractions = np.minimum(np.arange(1, steps.max() + 1)[None] / steps[:, None], 1.0)  # [N, S], padded with the goal
+    joints = start[:, None] + fractions[..., None, None] * (goal - start)[:, None]
+    scene = build_scene(generated.max_arms)
+    def repeat(x):
+        return jnp.repeat(jnp.asarray(x), fractions.shape[1], axis=0)
+
+    frames = forward_kinematics(scene.arm, repeat(generated.base_pos.astype(np.float32)), repeat(generated.base_quat.astype(np.float32)),
+                                jnp.asarray(joints.reshape(-1, *joints.shape[2:]), jnp.float32))
+    distance = np.asarray(frame_contacts(scene, frames, repeat(active), kernel="xla").min_distance)
+    distance = np.where(active, distance.reshape(len(steps), -1, generated.max_arms).min(axis=1), np.inf).min(axis=1)
+    clear = np.abs(distance) > 1e-4
+    assert clear.mean() > 0.9
+    np.testing.assert_array_equal(free[clear], distance[clear] > 0)
+    assert (~free[generated.num_arms >= 2]).sum() >= 10  # the set holds detour tasks
+
+
+def test_detour_rows_take_the_share_where_there_are_enough():
+    num_arms = np.repeat([1, 2, 3], 100)
+    free = np.ones(300, bool)
+    free[100:130] = False  # 30 detour tasks of 2 arms
+    free[200:290] = False  # 90 of 3 arms
+    rows = detour_rows(num_arms, free, per_team=40, detour_share=0.5, seed=3)
+    assert len(rows) == 120 and len(np.unique(rows)) == 120 and np.all(np.diff(rows) > 0)
+    counts = {k: (int((num_arms[rows] == k).sum()), int(((num_arms[rows] == k) & ~free[rows]).sum())) for k in (1, 2, 3)}
+    assert counts == {1: (40, 0), 2: (40, 20), 3: (40, 30)}  # 3 arms: 10 straight tasks, the rest detours
+    assert int((~free[detour_rows(num_arms, free, 40, 0.9)] & (num_arms[detour_rows(num_arms, free, 40, 0.9)] == 2)).sum()) == 30
+    three = detour_rows(num_arms, free, 20, 0.0)  # 3 arms: only 10 straight tasks, filled with detour tasks
+    assert int(((num_arms[three] == 3) & free[three]).sum()) == 10
+    np.testing.assert_array_equal(detour_rows(num_arms, free, 40, 0.5, seed=3), rows)
+    with pytest.raises(ValueError, match="fewer than per_team"):
+        detour_rows(num_arms, free, 101, 0.5)
+    with pytest.raises(ValueError, match="detour_share"):
+        detour_rows(num_arms, free, 10, 1.5)
+
+
+def test_cli_select_writes_the_subset_with_its_provenance(tmp_path, capsys, generated):
+    small = take(generated, generated.num_arms <= 3)
+    save_tasks(tmp_path / "a.npz", small, {"source": "a"})
+    per_team = int(np.bincount(small.num_arms)[1:].min())
+    cli.main(["select", str(tmp_path / "a.npz"), "--per-team", str(per_team), "--detour-share", "1", "--out", str(tmp_path / "s.npz")])
+    subset, meta = load_tasks(tmp_path / "s.npz")
+    assert subset.num_tasks == 3 * per_team and set(subset.task_id) <= set(small.task_id)
+    assert meta["source_metadata"] == {"source": "a"} and meta["detour_share"] == 1.0
+    free = straight_motion_free(subset)
+    assert meta["detours_by_team"] == {str(k): int(((subset.num_arms == k) & ~free).sum()) for k in (1, 2, 3)}
+    assert "detour tasks by team size" in capsys.readouterr().out

@@ -79,6 +79,18 @@ def task_checker(tasks: Tasks, index: int, resolution: float) -> CollisionChecke
     return team_checker(tasks.base_pos[index][active], tasks.base_quat[index][active], resolution)
 
 
+def straight_motion_free(tasks: Tasks, resolution: float = PlannerConfig.resolution) -> np.ndarray:
+    """[N] bool: whether each task's straight joint-space motion from its start to its goal
+    configuration is collision-free (checked every ``resolution`` rad). A task where it is
+    not needs a detour: some arm has to go around another, or wait for it."""
+    free = np.empty(tasks.num_tasks, bool)
+    for i in range(tasks.num_tasks):
+        active = np.asarray(tasks.active[i])
+        free[i] = task_checker(tasks, i, resolution).motion_free(np.ravel(tasks.start_joints[i][active]),
+                                                                 np.ravel(tasks.goal_joints[i][active]))
+    return free
+
+
 def solve_team(base_pos, base_quat, start, goal, config: PlannerConfig = PlannerConfig(), seed: int = 0, task_id: int = 0,
                angle_tolerance: float = ANGLE_TOLERANCE) -> ExpertResult:
     """The expert of a team (bases as :func:`team_checker`'s) from joints ``start`` to ``goal``

@@ -4,6 +4,7 @@
     python -m mjx_multiarm.tasks generate --preset test --out test.npz
     python -m mjx_multiarm.tasks info tasks.npz [--json]
     python -m mjx_multiarm.tasks merge a.npz b.npz --out mix.npz      # e.g. stratified + crowded training tasks
+    python -m mjx_multiarm.tasks select mix.npz --per-team 11250 --detour-share 0.5 --out detour.npz
     python -m mjx_multiarm.tasks import-json DIR --out tasks.npz [--json]
     python -m mjx_multiarm.tasks export-json tasks.npz --out DIR
 
@@ -20,7 +21,10 @@ import os
 import pathlib
 import sys
 
+import numpy as np
+
 from mjx_multiarm.cli import Progress, parse_arms
+from mjx_multiarm.expert.solve import straight_motion_free
 from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
 from mjx_multiarm.tasks.generate import (
     DATASETS,
@@ -30,7 +34,16 @@ from mjx_multiarm.tasks.generate import (
     generate_dataset,
 )
 from mjx_multiarm.tasks.original_json import export_tasks, import_tasks
-from mjx_multiarm.tasks.types import DIFFICULTY_BINS, SPEED_BINS, Tasks, bin_index, concatenate, with_slots
+from mjx_multiarm.tasks.select import detour_rows
+from mjx_multiarm.tasks.types import (
+    DIFFICULTY_BINS,
+    SPEED_BINS,
+    Tasks,
+    bin_index,
+    concatenate,
+    take,
+    with_slots,
+)
 
 
 def _counts(values, bins) -> dict[str, int]:
@@ -96,6 +109,13 @@ def main(argv=None) -> None:
     merge = commands.add_parser("merge", help="join task datasets into one file (padded to the most slots)")
     merge.add_argument("paths", type=pathlib.Path, nargs="+")
     merge.add_argument("--out", type=pathlib.Path, required=True)
+    sel = commands.add_parser("select", help="a subset with PER_TEAM tasks of each team size, a share of them detour tasks "
+                              "(whose straight start-goal motion collides)")
+    sel.add_argument("path", type=pathlib.Path)
+    sel.add_argument("--per-team", type=int, required=True, help="tasks of each team size")
+    sel.add_argument("--detour-share", type=float, required=True, help="share of detour tasks per team size, where there are enough")
+    sel.add_argument("--seed", type=int, default=0)
+    sel.add_argument("--out", type=pathlib.Path, required=True)
     imp = commands.add_parser("import-json", help="convert a folder of original per-task JSON files")
     imp.add_argument("source", type=pathlib.Path)
     imp.add_argument("--out", type=pathlib.Path, required=True)
@@ -129,6 +149,16 @@ def main(argv=None) -> None:
             tasks, metadata = merge_datasets(args.paths)
             save_tasks(args.out, tasks, metadata)
             print(f"wrote {tasks.num_tasks} tasks from {len(args.paths)} files to {args.out}")
+        elif args.command == "select":
+            tasks, metadata = load_tasks(args.path)
+            free = straight_motion_free(tasks)
+            rows = detour_rows(tasks.num_arms, free, args.per_team, args.detour_share, args.seed)
+            subset = take(tasks, rows)
+            detours = {int(k): int((~free[rows] & (subset.num_arms == k)).sum()) for k in np.unique(subset.num_arms)}
+            save_tasks(args.out, subset, {"selected_from": str(args.path), "source_metadata": metadata, "per_team": args.per_team,
+                                          "detour_share": args.detour_share, "seed": args.seed, "detours_by_team": detours})
+            print(f"wrote {subset.num_tasks} tasks to {args.out}; detour tasks by team size: {detours} "
+                  f"(in {args.path}: {int((~free).sum())} of {tasks.num_tasks})")
         elif args.command == "import-json":
             tasks, report = import_tasks(args.source, args.max_arms)
             save_tasks(args.out, tasks, {"imported_from": str(args.source)})
