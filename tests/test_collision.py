@@ -22,6 +22,7 @@ from mjx_multiarm import (
     scene_contacts,
     swept_contacts,
 )
+from mjx_multiarm.geometry import compiled as compiled_kernel
 from mjx_multiarm.geometry.collision import (
     KERNEL_VARIABLE,
     KERNELS,
@@ -274,6 +275,31 @@ def test_numba_and_xla_kernels_give_the_same_distances():
     clear = np.abs(xla.min_distance) > 1e-5
     np.testing.assert_array_equal(compiled.collided[clear], xla.collided[clear])
     assert 0.1 < xla.collided[active].mean() < 0.9 and np.isinf(xla.between_arms[~active]).all()
+
+
+def test_numba_kernel_checks_only_the_masked_pairs():
+    """With a between-arms mask that leaves pairs out (none, or capsules only), the numba
+    kernel's distance between arms is the brute-force minimum over the pairs left in."""
+    rng = np.random.default_rng(8)
+    scene = build_scene(3)
+    bases, joints, active = random_padded_scenes(rng, 30, 3)
+    frames = forward_kinematics(scene.arm, *base_pose_arrays(bases), jnp.asarray(joints, jnp.float32))
+    capsules, boxes = np.asarray(frames.capsules), np.asarray(frames.boxes)
+    arm, ncap = scene.arm, scene.arm.num_capsules
+    radius, half = arm.capsule_radius.astype(np.float64), arm.box_half.astype(np.float64)
+    capsules_only = np.zeros_like(scene.pairs.between_arms)
+    capsules_only[:ncap, :ncap] = True
+    for mask in (np.zeros_like(capsules_only), capsules_only):
+        between = compiled_kernel.batch_contacts(radius, half, np.zeros((0, 2), np.int64), mask, scene.pairs.ground.astype(np.int64),
+                                                 capsules[:, None], boxes[:, None], active)[0]
+        expected = np.full(active.shape, np.inf)
+        for n, i, j, a, b in np.argwhere(np.ones((len(active), 3, 3, *mask.shape), bool) & mask):
+            if i != j and active[n, i] and active[n, j]:
+                d = compiled_kernel.geom_distance(capsules[n, i].astype(np.float64), boxes[n, i].astype(np.float64), a,
+                                                  capsules[n, j].astype(np.float64), boxes[n, j].astype(np.float64), b, radius, half)
+                expected[n, i] = min(expected[n, i], d)
+        np.testing.assert_allclose(between, expected, atol=1e-6)
+    assert np.isfinite(expected[active.sum(axis=1) > 1]).any()
 
 
 @pytest.mark.parametrize("with_end_frames", [False, True])

@@ -299,6 +299,8 @@ def _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_hal
                 if d2 < seed_d2:
                     seed, seed_d2 = count, d2
                 count += 1
+    if count == 0:
+        return
     for k in range(-1, count):  # the pair of nearest centres first
         p = seed if k < 0 else k
         limit = max(min(max(best[i], best[j]), bound), 0.0) + cand_r[p]
