@@ -6,8 +6,9 @@ collision, and the solved tasks for comparison), prints the arms' final position
 (median, shares within 2 / 5 / 10 cm and beyond 20 cm), rotation errors (median, share
 within 0.1 rad), the step the episodes ended at (median, share by step 3), and how close
 the task's arms stand to each other at its start and goal configurations (median of each
-task's smallest distance between arms). Timeouts that end within a few cm are a precision
-problem; collisions at the first steps, or timeouts far from the targets, are a
+task's smallest distance between arms), and how many are detour tasks (the straight
+joint-space motion from start to goal collides). Timeouts that end within a few cm are a
+precision problem; collisions at the first steps, or timeouts far from the targets, are a
 coordination problem.
 
     python benchmarks/failure_modes.py --checkpoint RUN_DIR/policy.npz --tasks held512.npz --json
@@ -25,6 +26,7 @@ import numpy as np
 from mjx_multiarm.cli import parse_arms
 from mjx_multiarm.env.reaching import EVAL_TOLERANCE
 from mjx_multiarm.env.wrappers import TaskBank, make_episodes
+from mjx_multiarm.expert.solve import straight_motion_free
 from mjx_multiarm.geometry.collision import scene_contacts
 from mjx_multiarm.geometry.transforms import quat_angle
 from mjx_multiarm.planner.policy import Planner
@@ -54,6 +56,7 @@ def final_errors(planner: Planner, tasks, steps: int) -> dict:
     rotation = np.asarray(quat_angle(final.arms.ee_quat, final.arms.target_quat))
     collision = final.collided.any(axis=-1) & ~final.success
     start, goal = clearances(env, bank.tasks)
+    detour = ~straight_motion_free(tasks)
     kinds = {"timeout": ~final.success & ~collision, "collision": collision, "solved": final.success}
     report = {}
     for kind, rows in kinds.items():
@@ -67,7 +70,7 @@ def final_errors(planner: Planner, tasks, steps: int) -> dict:
                         "rotation_median_rad": float(np.median(r)), "within_0.1rad": float(np.mean(r < 0.1)),
                         "end_step_median": float(np.median(final.step[rows])), "ended_by_step_3": float(np.mean(final.step[rows] <= 3)),
                         "start_clearance_median_cm": 100 * float(np.median(start[rows])),
-                        "goal_clearance_median_cm": 100 * float(np.median(goal[rows]))}
+                        "goal_clearance_median_cm": 100 * float(np.median(goal[rows])), "detour_tasks": int(detour[rows].sum())}
     return report
 
 
@@ -90,7 +93,7 @@ def main() -> None:
                   f">20 cm {row['beyond_20cm']:.0%}); rotation median {row['rotation_median_rad']:.2f} rad "
                   f"(<0.1 {row['within_0.1rad']:.0%}); ended at step {row['end_step_median']:.0f} (median; by step 3: "
                   f"{row['ended_by_step_3']:.0%}); arms apart at start / goal {row['start_clearance_median_cm']:.1f} / "
-                  f"{row['goal_clearance_median_cm']:.1f} cm (median)")
+                  f"{row['goal_clearance_median_cm']:.1f} cm (median); detour tasks {row['detour_tasks']}")
     if args.json:
         print(json.dumps(result))
 
