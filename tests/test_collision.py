@@ -295,8 +295,8 @@ def test_numba_kernel_checks_only_the_masked_pairs():
         expected = np.full(active.shape, np.inf)
         for n, i, j, a, b in np.argwhere(np.ones((len(active), 3, 3, *mask.shape), bool) & mask):
             if i != j and active[n, i] and active[n, j]:
-                d = compiled_kernel.geom_distance(capsules[n, i].astype(np.float64), boxes[n, i].astype(np.float64), a,
-                                                  capsules[n, j].astype(np.float64), boxes[n, j].astype(np.float64), b, radius, half)
+                d = compiled_kernel.geom_distance(capsules[n].astype(np.float64), boxes[n].astype(np.float64), i, a, j, b,
+                                                  radius, half)
                 expected[n, i] = min(expected[n, i], d)
         np.testing.assert_allclose(between, expected, atol=1e-6)
     assert np.isfinite(expected[active.sum(axis=1) > 1]).any()

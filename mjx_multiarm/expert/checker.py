@@ -26,6 +26,7 @@ import numpy as np
 
 from mjx_multiarm.geometry.compiled import (
     bounding_spheres,
+    centre_distance2,
     geom_distance,
     ground_distance,
 )
@@ -97,12 +98,9 @@ def _pose_arm(base_pos, base_rot, joints, body_pos, body_rot, body_joint, joint_
 
 
 @_jit
-def _spheres_apart(centres_a, radii_a, a, centres_b, radii_b, b, margin):
-    d2 = 0.0
-    for i in range(3):
-        d2 += (centres_a[a, i] - centres_b[b, i]) ** 2
-    reach = radii_a[a] + radii_b[b] + margin
-    return d2 > reach * reach
+def _spheres_apart(centres, radii, i, a, j, b, margin):
+    reach = radii[i, a] + radii[j, b] + margin
+    return centre_distance2(centres, i, a, j, b) > reach * reach
 
 
 @_jit
@@ -118,9 +116,9 @@ def _collides(joints, margin, base_pos, base_rot, body_pos, body_rot, body_joint
     for i in range(k):
         _pose_arm(base_pos[i], base_rot[i], joints[i], body_pos, body_rot, body_joint, joint_axis,
                   capsule_body, capsule_ends, box_body, box_frame, capsules[i], boxes[i])
-        if ground_distance(capsules[i], boxes[i], radius, box_half, ground) < margin:
+        if ground_distance(capsules, boxes, i, radius, box_half, ground) < margin:
             return True
-        bounding_spheres(capsules[i], boxes[i], radius, box_half, centres[i], radii[i])
+        bounding_spheres(capsules, boxes, i, radius, box_half, centres, radii)
         arm_radius[i] = 0.0
         for g in range(ncap + nbox):
             d2 = 0.0
@@ -147,9 +145,9 @@ def _pairs_touch(pairs, i, j, capsules, boxes, centres, radii, radius, box_half,
     """Whether any geom pair (a of arm i, b of arm j) of ``pairs`` [P, 2] is within ``margin``."""
     for p in range(pairs.shape[0]):
         a, b = pairs[p, 0], pairs[p, 1]
-        if _spheres_apart(centres[i], radii[i], a, centres[j], radii[j], b, margin):
+        if _spheres_apart(centres, radii, i, a, j, b, margin):
             continue
-        if geom_distance(capsules[i], boxes[i], a, capsules[j], boxes[j], b, radius, box_half) < margin:
+        if geom_distance(capsules, boxes, i, a, j, b, radius, box_half) < margin:
             return True
     return False
 

@@ -35,16 +35,23 @@ def dot(u, v):
 
 
 @_jit
-def _squared_distance(u, v):
-    return (u[0] - v[0]) ** 2 + (u[1] - v[1]) ** 2 + (u[2] - v[2]) ** 2
+def centre_distance2(centres, i, a, j, b):
+    """Squared distance between centre ``a`` of arm ``i`` and centre ``b`` of arm ``j`` (``centres`` [arms, ngeom, 3])."""
+    return ((centres[i, a, 0] - centres[j, b, 0]) ** 2 + (centres[i, a, 1] - centres[j, b, 1]) ** 2
+            + (centres[i, a, 2] - centres[j, b, 2]) ** 2)
 
 
 @_jit
-def segment_distance(p1, q1, p2, q2):
-    """Distance between segments (Ericson 5.1.9, as :func:`mjx_multiarm.geometry.collision.segment_distance`)."""
+def segment_distance(capsules, i, a, j, b):
+    """Distance between the axes of capsule ``a`` of arm ``i`` and capsule ``b`` of arm ``j``
+    (``capsules`` [arms, ncap, 2, 3]; Ericson 5.1.9, as
+    :func:`mjx_multiarm.geometry.collision.segment_distance`). Reads scalars: no array views
+    on the hot path (each costs reference counting)."""
+    p1, q1 = (capsules[i, a, 0, 0], capsules[i, a, 0, 1], capsules[i, a, 0, 2]), (capsules[i, a, 1, 0], capsules[i, a, 1, 1], capsules[i, a, 1, 2])
+    p2, q2 = (capsules[j, b, 0, 0], capsules[j, b, 0, 1], capsules[j, b, 0, 2]), (capsules[j, b, 1, 0], capsules[j, b, 1, 1], capsules[j, b, 1, 2])
     a = e = b = c = f = 0.0
-    for i in range(3):
-        d1, d2, r = q1[i] - p1[i], q2[i] - p2[i], p1[i] - p2[i]
+    for k in range(3):
+        d1, d2, r = q1[k] - p1[k], q2[k] - p2[k], p1[k] - p2[k]
         a, e, b, c, f = a + d1 * d1, e + d2 * d2, b + d1 * d2, c + d1 * r, f + d2 * r
     denom = a * e - b * b
     s = min(max((b * f - c * e) / denom, 0.0), 1.0) if denom > 1e-12 * a * e else 0.0
@@ -55,8 +62,8 @@ def segment_distance(p1, q1, p2, q2):
         s = min(max((b - c) / a, 0.0), 1.0)
     t = min(max(t, 0.0), 1.0)
     total = 0.0
-    for i in range(3):
-        gap = p1[i] - p2[i] + (q1[i] - p1[i]) * s - (q2[i] - p2[i]) * t
+    for k in range(3):
+        gap = p1[k] - p2[k] + (q1[k] - p1[k]) * s - (q2[k] - p2[k]) * t
         total += gap * gap
     return math.sqrt(total)
 
@@ -114,13 +121,14 @@ def segment_aabb_distance(a, b, h):
 
 
 @_jit
-def segment_box_distance(p, q, box, half):
-    """Signed distance from segment [p, q] to a box (frame [4, 3]: centre, unit axes)."""
+def segment_box_distance(capsules, i, a, boxes, j, x, half):
+    """Signed distance from the axis of capsule ``a`` of arm ``i`` to box ``x`` of arm ``j``
+    (frames [arms, nbox, 4, 3]: centre, unit axes) of half sizes ``half`` [3]."""
     a0 = a1 = a2 = b0 = b1 = b2 = 0.0
     for m in range(3):
-        rel, d = p[m] - box[0, m], q[m] - p[m]
-        a0, a1, a2 = a0 + rel * box[1, m], a1 + rel * box[2, m], a2 + rel * box[3, m]
-        b0, b1, b2 = b0 + d * box[1, m], b1 + d * box[2, m], b2 + d * box[3, m]
+        rel, d = capsules[i, a, 0, m] - boxes[j, x, 0, m], capsules[i, a, 1, m] - capsules[i, a, 0, m]
+        a0, a1, a2 = a0 + rel * boxes[j, x, 1, m], a1 + rel * boxes[j, x, 2, m], a2 + rel * boxes[j, x, 3, m]
+        b0, b1, b2 = b0 + d * boxes[j, x, 1, m], b1 + d * boxes[j, x, 2, m], b2 + d * boxes[j, x, 3, m]
     return segment_aabb_distance((a0, a1, a2), (b0, b1, b2), (half[0], half[1], half[2]))
 
 
@@ -178,81 +186,83 @@ def box_box_distance(box_a, half_a, box_b, half_b):
 
 
 @_jit
-def geom_distance(capsules_a, boxes_a, ga, capsules_b, boxes_b, gb, radius, box_half):
-    """Signed distance of geom ``ga`` of arm A and geom ``gb`` of arm B (capsules, then boxes)."""
+def geom_distance(capsules, boxes, i, ga, j, gb, radius, box_half):
+    """Signed distance of geom ``ga`` of arm ``i`` and geom ``gb`` of arm ``j`` (capsules,
+    then boxes; ``capsules`` [arms, ncap, 2, 3], ``boxes`` [arms, nbox, 4, 3])."""
     ncap = radius.shape[0]
     if ga < ncap and gb < ncap:
-        return segment_distance(capsules_a[ga, 0], capsules_a[ga, 1], capsules_b[gb, 0], capsules_b[gb, 1]) \
-            - radius[ga] - radius[gb]
+        return segment_distance(capsules, i, ga, j, gb) - radius[ga] - radius[gb]
     if ga >= ncap and gb >= ncap:
-        return box_box_distance(boxes_a[ga - ncap], box_half[ga - ncap], boxes_b[gb - ncap], box_half[gb - ncap])
+        return box_box_distance(boxes[i, ga - ncap], box_half[ga - ncap], boxes[j, gb - ncap], box_half[gb - ncap])
     if ga < ncap:
-        return segment_box_distance(capsules_a[ga, 0], capsules_a[ga, 1], boxes_b[gb - ncap], box_half[gb - ncap]) - radius[ga]
-    return segment_box_distance(capsules_b[gb, 0], capsules_b[gb, 1], boxes_a[ga - ncap], box_half[ga - ncap]) - radius[gb]
+        return segment_box_distance(capsules, i, ga, boxes, j, gb - ncap, box_half[gb - ncap]) - radius[ga]
+    return segment_box_distance(capsules, j, gb, boxes, i, ga - ncap, box_half[ga - ncap]) - radius[gb]
 
 
 @_jit
-def bounding_spheres(capsules, boxes, radius, box_half, centres, radii):
-    """Per geom of one arm, a bounding sphere centred inside the geom (written in place)."""
+def bounding_spheres(capsules, boxes, i, radius, box_half, centres, radii):
+    """Per geom of arm ``i``, a bounding sphere centred inside the geom (written in place
+    to ``centres[i]``, ``radii[i]``)."""
     ncap = radius.shape[0]
     for c in range(ncap):
         length2 = 0.0
-        for i in range(3):
-            centres[c, i] = 0.5 * (capsules[c, 0, i] + capsules[c, 1, i])
-            length2 += (capsules[c, 1, i] - capsules[c, 0, i]) ** 2
-        radii[c] = 0.5 * math.sqrt(length2) + radius[c]
-    for x in range(boxes.shape[0]):
-        centres[ncap + x] = boxes[x, 0]
-        radii[ncap + x] = math.sqrt(dot(box_half[x], box_half[x]))
+        for m in range(3):
+            centres[i, c, m] = 0.5 * (capsules[i, c, 0, m] + capsules[i, c, 1, m])
+            length2 += (capsules[i, c, 1, m] - capsules[i, c, 0, m]) ** 2
+        radii[i, c] = 0.5 * math.sqrt(length2) + radius[c]
+    for x in range(boxes.shape[1]):
+        for m in range(3):
+            centres[i, ncap + x, m] = boxes[i, x, 0, m]
+        radii[i, ncap + x] = math.sqrt(box_half[x, 0] ** 2 + box_half[x, 1] ** 2 + box_half[x, 2] ** 2)
 
 
 @_jit
-def ground_distance(capsules, boxes, radius, box_half, ground):
-    """The lowest point of one arm's ground-checked geoms: capsule ends minus the radius, box corners."""
+def ground_distance(capsules, boxes, i, radius, box_half, ground):
+    """The lowest point of arm ``i``'s ground-checked geoms: capsule ends minus the radius, box corners."""
     ncap, low = radius.shape[0], np.inf
     for g in ground:
         if g < ncap:
-            low = min(low, min(capsules[g, 0, 2], capsules[g, 1, 2]) - radius[g])
+            low = min(low, min(capsules[i, g, 0, 2], capsules[i, g, 1, 2]) - radius[g])
         else:
             x = g - ncap
-            corner = boxes[x, 0, 2]
+            corner = boxes[i, x, 0, 2]
             for a in range(3):
-                corner -= box_half[x, a] * abs(boxes[x, a + 1, 2])
+                corner -= box_half[x, a] * abs(boxes[i, x, a + 1, 2])
             low = min(low, corner)
     return low
 
 
 @_jit
-def _self_distance(capsules, boxes, centres, radii, radius, box_half, pairs, best):
-    """The smaller of ``best`` and the smallest distance over one arm's self pairs: the pair
-    of nearest centres first, then only the pairs whose sphere gap is below the distance to
-    beat."""
+def _self_distance(i, capsules, boxes, centres, radii, radius, box_half, pairs, best):
+    """The smaller of ``best`` and the smallest distance over arm ``i``'s self pairs: the
+    pair of nearest centres first, then only the pairs whose sphere gap is below the
+    distance to beat."""
     seed = -1
     if best == np.inf:  # no bound yet
         seed, seed_d2 = 0, np.inf
         for p in range(pairs.shape[0]):
-            d2 = _squared_distance(centres[pairs[p, 0]], centres[pairs[p, 1]])
+            d2 = centre_distance2(centres, i, pairs[p, 0], i, pairs[p, 1])
             if d2 < seed_d2:
                 seed, seed_d2 = p, d2
-        best = geom_distance(capsules, boxes, pairs[seed, 0], capsules, boxes, pairs[seed, 1], radius, box_half)
+        best = geom_distance(capsules, boxes, i, pairs[seed, 0], i, pairs[seed, 1], radius, box_half)
     for p in range(pairs.shape[0]):
         a, b = pairs[p, 0], pairs[p, 1]
-        reach = max(best, 0.0) + radii[a] + radii[b]
-        if p != seed and _squared_distance(centres[a], centres[b]) < reach * reach:
-            best = min(best, geom_distance(capsules, boxes, a, capsules, boxes, b, radius, box_half))
+        reach = max(best, 0.0) + radii[i, a] + radii[i, b]
+        if p != seed and centre_distance2(centres, i, a, i, b) < reach * reach:
+            best = min(best, geom_distance(capsules, boxes, i, a, i, b, radius, box_half))
     return best
 
 
 @_jit
-def _near_geoms(centres, radii, reach, lo, hi, out):
-    """The geoms (of one arm) whose sphere comes within ``reach`` of the box [lo, hi]; their
-    count, indices written to ``out``."""
+def _near_geoms(centres, radii, i, reach, lo, hi, j, out):
+    """The geoms of arm ``i`` whose sphere comes within ``reach`` of arm ``j``'s box
+    [lo[j], hi[j]]; their count, indices written to ``out``."""
     count = 0
-    for g in range(radii.shape[0]):
-        e = reach + radii[g]
+    for g in range(radii.shape[1]):
+        e = reach + radii[i, g]
         near = True
         for m in range(3):
-            near = near and centres[g, m] + e >= lo[m] and centres[g, m] - e <= hi[m]
+            near = near and centres[i, g, m] + e >= lo[j, m] and centres[i, g, m] - e <= hi[j, m]
         if near:
             out[count] = g
             count += 1
@@ -283,16 +293,16 @@ def _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_hal
                 ga, da = g, ea
             if eb < db:
                 gb, db = g, eb
-        bound = math.sqrt(_squared_distance(centres[i, ga], centres[j, gb]))
+        bound = math.sqrt(centre_distance2(centres, i, ga, j, gb))
     reach = max(bound, 0.0)
-    ni = _near_geoms(centres[i], radii[i], reach, lo[j], hi[j], near_i)
-    nj = _near_geoms(centres[j], radii[j], reach, lo[i], hi[i], near_j)
+    ni = _near_geoms(centres, radii, i, reach, lo, hi, j, near_i)
+    nj = _near_geoms(centres, radii, j, reach, lo, hi, i, near_j)
     count, seed, seed_d2 = 0, 0, np.inf
     for x in range(ni):
         a = near_i[x]
         for y in range(nj):
             b = near_j[y]
-            d2 = _squared_distance(centres[i, a], centres[j, b])
+            d2 = centre_distance2(centres, i, a, j, b)
             spheres = radii[i, a] + radii[j, b]
             if mask[a, b] and d2 < (reach + spheres) ** 2:
                 cand_a[count], cand_b[count], cand_d2[count], cand_r[count] = a, b, d2, spheres
@@ -305,7 +315,7 @@ def _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_hal
         p = seed if k < 0 else k
         limit = max(min(max(best[i], best[j]), bound), 0.0) + cand_r[p]
         if k != seed and cand_d2[p] < limit * limit:
-            d = geom_distance(capsules[i], boxes[i], cand_a[p], capsules[j], boxes[j], cand_b[p], radius, box_half)
+            d = geom_distance(capsules, boxes, i, cand_a[p], j, cand_b[p], radius, box_half)
             best[i], best[j] = min(best[i], d), min(best[j], d)
 
 
@@ -321,16 +331,15 @@ def _scene_contacts(capsules, boxes, active, radius, box_half, self_pairs, mask,
     for i in range(num_arms):
         if not active[i]:
             continue
-        bounding_spheres(capsules[i], boxes[i], radius, box_half, centres[i], radii[i])
+        bounding_spheres(capsules, boxes, i, radius, box_half, centres, radii)
         for m in range(3):
             lo[i, m], hi[i, m] = np.inf, -np.inf
             for g in range(radii.shape[1]):
                 lo[i, m] = min(lo[i, m], centres[i, g, m] - radii[i, g])
                 hi[i, m] = max(hi[i, m], centres[i, g, m] + radii[i, g])
-        low[i] = min(low[i], ground_distance(capsules[i], boxes[i], radius, box_half, ground))
+        low[i] = min(low[i], ground_distance(capsules, boxes, i, radius, box_half, ground))
         if self_pairs.shape[0]:
-            within[i] = _self_distance(capsules[i], boxes[i], centres[i], radii[i], radius, box_half, self_pairs,
-                                       within[i])
+            within[i] = _self_distance(i, capsules, boxes, centres, radii, radius, box_half, self_pairs, within[i])
         for j in range(i):  # arm pairs, keyed by the squared gap of the arms' boxes
             if active[j]:
                 gap2 = 0.0
