@@ -42,13 +42,15 @@ def centre_distance2(centres, i, a, j, b):
 
 
 @_jit
-def segment_distance(capsules, i, a, j, b):
-    """Distance between the axes of capsule ``a`` of arm ``i`` and capsule ``b`` of arm ``j``
+def segment_distance(capsules, i, ga, j, gb):
+    """Distance between the axes of capsule ``ga`` of arm ``i`` and capsule ``gb`` of arm ``j``
     (``capsules`` [arms, ncap, 2, 3]; Ericson 5.1.9, as
     :func:`mjx_multiarm.geometry.collision.segment_distance`). Reads scalars: no array views
     on the hot path (each costs reference counting)."""
-    p1, q1 = (capsules[i, a, 0, 0], capsules[i, a, 0, 1], capsules[i, a, 0, 2]), (capsules[i, a, 1, 0], capsules[i, a, 1, 1], capsules[i, a, 1, 2])
-    p2, q2 = (capsules[j, b, 0, 0], capsules[j, b, 0, 1], capsules[j, b, 0, 2]), (capsules[j, b, 1, 0], capsules[j, b, 1, 1], capsules[j, b, 1, 2])
+    p1 = (capsules[i, ga, 0, 0], capsules[i, ga, 0, 1], capsules[i, ga, 0, 2])
+    q1 = (capsules[i, ga, 1, 0], capsules[i, ga, 1, 1], capsules[i, ga, 1, 2])
+    p2 = (capsules[j, gb, 0, 0], capsules[j, gb, 0, 1], capsules[j, gb, 0, 2])
+    q2 = (capsules[j, gb, 1, 0], capsules[j, gb, 1, 1], capsules[j, gb, 1, 2])
     a = e = b = c = f = 0.0
     for k in range(3):
         d1, d2, r = q1[k] - p1[k], q2[k] - p2[k], p1[k] - p2[k]
