@@ -12,15 +12,21 @@ same scenes for the same ``--seed``.
 - **Numba checker** (:class:`mjx_multiarm.expert.checker.CollisionChecker`, an independent
   float64 implementation): per scene, whether any arm collides. Scenes whose smallest
   kernel distance is within ``1e-5`` m of contact are left out (float32 rounding) and counted.
+- ``--max-distance 0`` asks the kernel for contacts only (``CONTACTS_ONLY``, what the
+  environment's step asks); its verdicts must match the reference too (no checker
+  comparison: clear arms read 0, so near-contact scenes cannot be told apart).
 
     python benchmarks/collision_verdicts.py --scenes 100000 --record benchmarks/collision_verdicts_100k.npz
     python benchmarks/collision_verdicts.py --scenes 100000 --reference benchmarks/collision_verdicts_100k.npz
+    python benchmarks/collision_verdicts.py --scenes 100000 --reference benchmarks/collision_verdicts_100k.npz \
+        --max-distance 0 --no-checker
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import pathlib
 import time
 
@@ -59,13 +65,13 @@ def random_scenes(seed: int, count: int, block: int = 1000):
     return pos, quat, joints, np.arange(SLOTS) < arms[:, None]
 
 
-def kernel_results(pos, quat, joints, active, chunk: int = 4096):
+def kernel_results(pos, quat, joints, active, chunk: int = 4096, max_distance: float = math.inf):
     """Per-arm verdicts [N, 10] and smallest distances [N, 10] of the JAX kernel."""
     scene = build_scene(SLOTS)
 
     @jax.jit
     def check(*inputs):
-        contacts = scene_contacts(scene, *inputs)
+        contacts = scene_contacts(scene, *inputs, max_distance=max_distance)
         return contacts.collided, contacts.min_distance
 
     verdicts, distances = [], []
@@ -92,14 +98,18 @@ def main(argv=None) -> None:
     out.add_argument("--record", type=pathlib.Path, help="store the kernel's verdicts as the reference")
     out.add_argument("--reference", type=pathlib.Path, help="count the verdicts that differ from this recording")
     parser.add_argument("--no-checker", action="store_true", help="skip the numba checker comparison")
+    parser.add_argument("--max-distance", type=float, default=math.inf,
+                        help="the kernel's max_distance (0: contacts only; needs --no-checker)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
+    if args.max_distance <= ROUNDING and not args.no_checker:
+        parser.error("--max-distance at or below contact hides the distances the checker comparison needs: add --no-checker")
 
     print(f"# {cpu_name()}, {jax.devices()[0].device_kind}, jax {jax.__version__}")
     scenes = random_scenes(args.seed, args.scenes)
     start = time.perf_counter()
-    verdicts, distances = kernel_results(*scenes)
-    result = {"scenes": args.scenes, "seed": args.seed, "arms": int(scenes[3].sum()),
+    verdicts, distances = kernel_results(*scenes, max_distance=args.max_distance)
+    result = {"scenes": args.scenes, "seed": args.seed, "max_distance": args.max_distance, "arms": int(scenes[3].sum()),
               "collided_arms": int(verdicts.sum()), "kernel_seconds": time.perf_counter() - start}
     if args.record:
         atomic_write(args.record, lambda f: np.savez_compressed(f, seed=args.seed, verdicts=np.packbits(verdicts, axis=-1)))

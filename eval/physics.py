@@ -27,7 +27,7 @@ import mujoco
 import numpy as np
 
 from mjx_multiarm.env.reaching import EVAL_TOLERANCE
-from mjx_multiarm.geometry.collision import scene_contacts
+from mjx_multiarm.geometry.collision import CONTACTS_ONLY, scene_contacts
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.geometry.scene import build_scene
@@ -47,7 +47,7 @@ def _measure(num_arms: int):
         reached = ((jnp.linalg.norm(frames.ee_pos - target_pos, axis=-1) < EVAL_TOLERANCE[0])
                    & (quat_angle(frames.ee_quat, target_quat) < EVAL_TOLERANCE[1])).all(-1)
         active = jnp.ones(joints.shape[:-1], bool)
-        return reached, scene_contacts(scene, base_pos, base_quat, joints, active).collided.any(-1)
+        return reached, scene_contacts(scene, base_pos, base_quat, joints, active, CONTACTS_ONLY).collided.any(-1)
 
     return measure
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import importlib
 import json
 import pathlib
@@ -24,6 +25,7 @@ from mjx_multiarm import (
 )
 from mjx_multiarm.geometry import compiled as compiled_kernel
 from mjx_multiarm.geometry.collision import (
+    CONTACTS_ONLY,
     KERNEL_VARIABLE,
     KERNELS,
     frame_contacts,
@@ -302,16 +304,22 @@ def test_numba_kernel_checks_only_the_masked_pairs():
     assert np.isfinite(expected[active.sum(axis=1) > 1]).any()
 
 
+def _random_motions(seed: int, count: int, num_arms: int):
+    """(scene, base_pos, base_quat, start, end, active): random padded scenes and joint
+    motions of up to 0.3 rad per joint, float32."""
+    rng = np.random.default_rng(seed)
+    scene = build_scene(num_arms)
+    bases, start, active = random_padded_scenes(rng, count, num_arms)
+    end = start + rng.uniform(-0.3, 0.3, start.shape)
+    pos, quat = base_pose_arrays(bases)
+    return scene, pos, quat, jnp.asarray(start, jnp.float32), jnp.asarray(end, jnp.float32), active
+
+
 @pytest.mark.parametrize("with_end_frames", [False, True])
 def test_swept_checks_agree_between_kernels(monkeypatch, with_end_frames):
     """The numba kernel's swept check (one call over the substeps, each substep's distances
     bounding the next's) gives each arm the XLA kernel's smallest distance over them."""
-    rng = np.random.default_rng(5)
-    scene = build_scene(4)
-    bases, start, active = random_padded_scenes(rng, 64, 4)
-    end = start + rng.uniform(-0.3, 0.3, start.shape)
-    pos, quat = base_pose_arrays(bases)
-    start, end = jnp.asarray(start, jnp.float32), jnp.asarray(end, jnp.float32)
+    scene, pos, quat, start, end, active = _random_motions(5, 64, 4)
     end_frames = forward_kinematics(scene.arm, pos, quat, end) if with_end_frames else None
 
     def swept(kernel):
@@ -325,6 +333,26 @@ def test_swept_checks_agree_between_kernels(monkeypatch, with_end_frames):
         np.testing.assert_array_equal(np.isinf(a), np.isinf(b), err_msg=field)
         np.testing.assert_allclose(a[np.isfinite(b)], b[np.isfinite(b)], atol=2e-6, err_msg=field)
     assert 0.1 < xla.collided[active].mean() < 0.9
+
+
+@pytest.mark.parametrize("max_distance", [CONTACTS_ONLY, 0.05])
+def test_max_distance_clips_the_distances_and_keeps_the_verdicts(kernel, max_distance):
+    """With ``max_distance`` every distance is the exact one clipped at it (the numba kernel
+    skips the pairs that cannot come within it), for one configuration and for a swept
+    motion, so the verdicts are those of the exact query."""
+    scene, pos, quat, start, end, active = _random_motions(9, 200, 5)
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def queries(limit):
+        return (scene_contacts(scene, pos, quat, start, active, limit),
+                swept_contacts(scene, pos, quat, start, end, active, substeps=4, max_distance=limit))
+
+    for exact, clipped in zip(queries(np.inf), queries(max_distance)):
+        for field in ("between_arms", "within_arm", "ground"):
+            np.testing.assert_allclose(getattr(clipped, field), np.minimum(getattr(exact, field), max_distance),
+                                       atol=2e-6, err_msg=field)
+        np.testing.assert_array_equal(clipped.collided, exact.collided)
+        assert 0.1 < exact.collided[active].mean() < 0.9
 
 
 @settings(max_examples=10)
@@ -343,14 +371,16 @@ def test_planar_rigid_motion_of_the_whole_scene_changes_nothing(dx, dy, yaw, see
         np.testing.assert_allclose(getattr(b, field), getattr(a, field), atol=1e-5, err_msg=field)
 
 
-def test_verdicts_match_the_recorded_reference(kernel, monkeypatch, capsys):
+@pytest.mark.parametrize("contacts_only", [False, True])
+def test_verdicts_match_the_recorded_reference(kernel, contacts_only, monkeypatch, capsys):
     """The first 2,000 of the 100,000 random scenes recorded by benchmarks/collision_verdicts.py
     give the recorded verdicts, arm by arm, and the numba checker's: a kernel change that
-    keeps the collision model changes no verdict."""
+    keeps the collision model changes no verdict. Asking for contacts only changes none either."""
     benchmarks = pathlib.Path(__file__).parents[1] / "benchmarks"
     monkeypatch.syspath_prepend(str(benchmarks))
     verdicts = importlib.import_module("collision_verdicts")
-    verdicts.main(["--scenes", "2000", "--reference", str(benchmarks / "collision_verdicts_100k.npz"), "--json"])
+    query = ["--max-distance", str(CONTACTS_ONLY), "--no-checker"] if contacts_only else []
+    verdicts.main(["--scenes", "2000", "--reference", str(benchmarks / "collision_verdicts_100k.npz"), "--json", *query])
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert result["differ_from_reference"] == 0 and result["differ_from_checker"] == 0, result
+    assert result["differ_from_reference"] == 0 and result.get("differ_from_checker", 0) == 0, result
     assert 0.2 < result["collided_arms"] / result["arms"] < 0.8

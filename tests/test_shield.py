@@ -13,7 +13,7 @@ from test_env import _facing_pair, rollout
 from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
 from mjx_multiarm.env.shield import AWAY, HELD, PROPOSED, away_joints
 from mjx_multiarm.env.wrappers import TaskBank
-from mjx_multiarm.geometry.collision import scene_contacts, swept_contacts
+from mjx_multiarm.geometry.collision import CONTACTS_ONLY, scene_contacts, swept_contacts
 from mjx_multiarm.tasks.types import take
 
 
@@ -39,7 +39,8 @@ def test_shielded_steps_never_collide_and_free_steps_pass_unchanged(crowded):
     limits = {"joint_range": env.joint_range, "max_step": env.max_step}
     shield = jax.jit(jax.vmap(env.shield))
     executed, motion, contacts = shield(t.base_pos, t.base_quat, t.start_joints, proposed, t.active)
-    sweep = jax.jit(jax.vmap(lambda p, q, a, b, active: swept_contacts(env.scene, p, q, a, b, active, env.substeps)))
+    sweep = jax.jit(jax.vmap(lambda p, q, a, b, active: swept_contacts(env.scene, p, q, a, b, active, env.substeps,
+                                                                                   max_distance=CONTACTS_ONLY)))
     asked = np.asarray(sweep(t.base_pos, t.base_quat, t.start_joints, proposed, t.active).collided.any(-1))
     done = sweep(t.base_pos, t.base_quat, t.start_joints, executed, t.active)
     assert 5 <= asked.sum() < len(asked)  # the proposals collide in some teams, not all

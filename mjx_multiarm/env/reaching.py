@@ -60,6 +60,7 @@ from mjx_multiarm.env.observation import (
 )
 from mjx_multiarm.env.shield import PROPOSED, shielded_joints
 from mjx_multiarm.geometry.collision import (
+    CONTACTS_ONLY,
     SWEEP_RESOLUTION,
     num_substeps,
     swept_contacts,
@@ -184,8 +185,9 @@ class State:
       step: control steps taken.
       tolerance: [2] (eps_p m, eps_r rad).
       target_lengths: [A, samples] arc-length tables of moving targets ([A, 1] zeros when static).
-      metrics: ``min_distance`` [A] smallest signed distance (m) during the last step;
-        ``nonfinite_action`` [A] the arm's action held a NaN or inf.
+      metrics: ``min_distance`` [A] smallest signed distance (m) during the last step where
+        it is negative (a contact), else 0 (the step asks the collision kernel for contacts
+        only: :data:`~mjx_multiarm.geometry.collision.CONTACTS_ONLY`); ``nonfinite_action`` [A] the arm's action held a NaN or inf.
     """
 
     task: Tasks
@@ -321,7 +323,7 @@ class ReachingEnv:
             step=step,
             tolerance=tolerance,
             target_lengths=lengths,
-            metrics={"min_distance": jnp.full(self.max_arms, jnp.inf, jnp.float32), "nonfinite_action": no}
+            metrics={"min_distance": jnp.zeros(self.max_arms, jnp.float32), "nonfinite_action": no}
             | ({"shielded": no} if self.config.safe else {}),
         )
 
@@ -341,7 +343,7 @@ class ReachingEnv:
         else:
             frames = self._pose(task, joints)
             contacts = swept_contacts(self.scene, task.base_pos, task.base_quat, state.joints, joints, task.active,
-                                      self.substeps, end_frames=frames)
+                                      self.substeps, end_frames=frames, max_distance=CONTACTS_ONLY)
         collided = contacts.collided & task.active
         if not self.config.end_on_collision:  # training option: the colliding arms go back
             joints = jnp.where((collided & ~self._collisions_end(state.tolerance))[:, None], state.joints, joints)

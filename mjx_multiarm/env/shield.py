@@ -21,7 +21,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from mjx_multiarm.geometry.collision import Contacts, swept_contacts
+from mjx_multiarm.geometry.collision import CONTACTS_ONLY, Contacts, swept_contacts
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.scene import Scene
 
@@ -40,7 +40,7 @@ def shielded_joints(scene: Scene, base_pos, base_quat, joints, proposed, active,
 
     Returns:
       (next joints [A, 6], motion [A] int: :data:`PROPOSED`, :data:`AWAY` or :data:`HELD`,
-      contacts of the executed step).
+      contacts of the executed step, contacts only: :data:`~mjx_multiarm.geometry.collision.CONTACTS_ONLY`).
     """
     num_arms = joints.shape[-2]
     slot = jnp.arange(num_arms)
@@ -53,7 +53,7 @@ def shielded_joints(scene: Scene, base_pos, base_quat, joints, proposed, active,
         return jnp.take_along_axis(options, level[None, :, None], axis=0)[0]
 
     def check(level) -> Contacts:
-        return swept_contacts(scene, base_pos, base_quat, joints, motion(level), active, substeps)
+        return swept_contacts(scene, base_pos, base_quat, joints, motion(level), active, substeps, max_distance=CONTACTS_ONLY)
 
     def colliding(level, contacts):
         return contacts.collided & active & (level < HELD)

@@ -20,15 +20,16 @@ from __future__ import annotations
 import functools
 import math
 
-import mujoco
 import numba
 import numpy as np
 
+from mjx_multiarm.geometry import compiled
 from mjx_multiarm.geometry.compiled import (
     bounding_spheres,
     centre_distance2,
     geom_distance,
     ground_distance,
+    pose_arm,
 )
 from mjx_multiarm.geometry.robot import NUM_JOINTS, load_arm
 from mjx_multiarm.geometry.scene import build_scene
@@ -41,71 +42,13 @@ REPLAY_MARGIN = 1e-5
 
 
 @_jit
-def _transform(pos, rot, local, out):
-    """out = pos + rot @ local (3-vectors; written out: no BLAS call for 3 x 3)."""
-    for i in range(3):
-        out[i] = pos[i] + rot[i, 0] * local[0] + rot[i, 1] * local[1] + rot[i, 2] * local[2]
-
-
-@_jit
-def _matmul3(a, b, out):
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
-
-
-@_jit
-def _rotation(axis, angle):
-    """Rotation matrix of ``angle`` about the unit ``axis`` (Rodrigues)."""
-    c, s = math.cos(angle), math.sin(angle)
-    x, y, z = axis[0], axis[1], axis[2]
-    t = 1.0 - c
-    out = np.empty((3, 3))
-    out[0, 0], out[0, 1], out[0, 2] = t * x * x + c, t * x * y - s * z, t * x * z + s * y
-    out[1, 0], out[1, 1], out[1, 2] = t * x * y + s * z, t * y * y + c, t * y * z - s * x
-    out[2, 0], out[2, 1], out[2, 2] = t * x * z - s * y, t * y * z + s * x, t * z * z + c
-    return out
-
-
-@_jit
-def _pose_arm(base_pos, base_rot, joints, body_pos, body_rot, body_joint, joint_axis,
-              capsule_body, capsule_ends, box_body, box_frame, capsules, boxes):
-    """World capsule ends [ncap, 2, 3] and box frames [nbox, 4, 3] of one arm (written in place)."""
-    nbody = body_pos.shape[0]
-    pos = np.empty((nbody, 3))
-    rot = np.empty((nbody, 3, 3))
-    fixed = np.empty((3, 3))
-    zero = np.zeros(3)
-    pos[0] = base_pos
-    rot[0] = base_rot
-    for b in range(1, nbody):
-        _transform(pos[b - 1], rot[b - 1], body_pos[b], pos[b])
-        j = body_joint[b]
-        if j >= 0:
-            _matmul3(rot[b - 1], body_rot[b], fixed)
-            _matmul3(fixed, _rotation(joint_axis[j], joints[j]), rot[b])
-        else:
-            _matmul3(rot[b - 1], body_rot[b], rot[b])
-    for c in range(capsule_body.shape[0]):
-        b = capsule_body[c]
-        for e in range(2):
-            _transform(pos[b], rot[b], capsule_ends[c, e], capsules[c, e])
-    for x in range(box_body.shape[0]):
-        b = box_body[x]
-        _transform(pos[b], rot[b], box_frame[x, 0], boxes[x, 0])
-        for k in range(1, 4):
-            _transform(zero, rot[b], box_frame[x, k], boxes[x, k])
-
-
-@_jit
 def _spheres_apart(centres, radii, i, a, j, b, margin):
     reach = radii[i, a] + radii[j, b] + margin
     return centre_distance2(centres, i, a, j, b) > reach * reach
 
 
 @_jit
-def _collides(joints, margin, base_pos, base_rot, body_pos, body_rot, body_joint, joint_axis, capsule_body,
-              capsule_ends, radius, box_body, box_frame, box_half, self_pairs, between_pairs, ground):
+def _collides(joints, margin, base_pos, base_rot, arm, radius, box_half, self_pairs, between_pairs, ground):
     """Any contact (signed distance < ``margin``) among the arms at ``joints`` [k, 6]."""
     k, ncap, nbox = joints.shape[0], radius.shape[0], box_half.shape[0]
     capsules = np.empty((k, ncap, 2, 3))
@@ -113,9 +56,9 @@ def _collides(joints, margin, base_pos, base_rot, body_pos, body_rot, body_joint
     centres = np.empty((k, ncap + nbox, 3))
     radii = np.empty((k, ncap + nbox))
     arm_radius = np.empty(k)  # about the base: all of an arm lies within it
+    pos, rot, fixed = np.empty((arm[0].shape[0], 3)), np.empty((arm[0].shape[0], 3, 3)), np.empty((3, 3))
     for i in range(k):
-        _pose_arm(base_pos[i], base_rot[i], joints[i], body_pos, body_rot, body_joint, joint_axis,
-                  capsule_body, capsule_ends, box_body, box_frame, capsules[i], boxes[i])
+        pose_arm(base_pos, base_rot, joints, i, arm, pos, rot, fixed, capsules, boxes)
         if ground_distance(capsules, boxes, i, radius, box_half, ground) < margin:
             return True
         bounding_spheres(capsules, boxes, i, radius, box_half, centres, radii)
@@ -200,7 +143,7 @@ class CollisionChecker:
         self.upper = np.tile(joint_range[:, 1], self.num_arms)
         self.resolution = resolution
         self.margin = float(margin)
-        self._model = (base_pos, _quat_to_rot(base_quat), *_arm_constants())
+        self._model = (base_pos, compiled.rotations(base_quat), *_arm_constants())
 
     def collided(self, configs) -> np.ndarray:
         """[n] bool for composite configurations [n, 6k]."""
@@ -245,22 +188,11 @@ class CollisionChecker:
         return configs.reshape(len(configs), self.num_arms, NUM_JOINTS)
 
 
-def _quat_to_rot(quat) -> np.ndarray:
-    """Rotation matrices [n, 3, 3] of wxyz quaternions [n, 4] (normalized first; MuJoCo C)."""
-    out = np.empty((len(quat), 9))
-    for q, rot in zip(quat, out):
-        mujoco.mju_quat2Mat(rot, q / np.linalg.norm(q))
-    return out.reshape(-1, 3, 3)
-
-
 @functools.cache
 def _arm_constants() -> tuple:
-    """The arm's geometry and pair lists as the compiled functions take them (read once)."""
+    """The arm's kinematics, geometry and pair lists as the compiled functions take them (read once)."""
     arm, pairs = load_arm(), build_scene(2).pairs
     return (
-        arm.body_pos.astype(np.float64), _quat_to_rot(arm.body_quat), np.asarray(arm.body_joint, np.int64),
-        arm.joint_axis.astype(np.float64), arm.capsule_body.astype(np.int64), arm.capsule_ends.astype(np.float64),
-        arm.capsule_radius.astype(np.float64), arm.box_body.astype(np.int64), arm.box_frame.astype(np.float64),
-        arm.box_half.astype(np.float64), pairs.self_pairs.astype(np.int64),
-        np.argwhere(pairs.between_arms).astype(np.int64), pairs.ground.astype(np.int64),
+        compiled.arm_constants(arm), arm.capsule_radius.astype(np.float64), arm.box_half.astype(np.float64),
+        pairs.self_pairs.astype(np.int64), np.argwhere(pairs.between_arms).astype(np.int64), pairs.ground.astype(np.int64),
     )

@@ -58,6 +58,9 @@ CPU_SELF_CHUNK = 1024
 KERNELS = ("xla", "numba")
 #: Environment variable that overrides :func:`default_kernel` (one of :data:`KERNELS`).
 KERNEL_VARIABLE = "MJX_MULTIARM_COLLISION_KERNEL"
+#: ``max_distance`` that asks for contacts only: verdicts and penetration depths, every clear
+#: arm at 0 (what a step, a task generator or a verdict needs; the fastest numba query).
+CONTACTS_ONLY = 0.0
 
 
 @struct.dataclass
@@ -408,7 +411,8 @@ def default_kernel(max_arms: int) -> str:
     return kernel
 
 
-def geom_contacts(scene: Scene, capsules, boxes, active, chunk: int | None = None, kernel: str | None = None) -> Contacts:
+def geom_contacts(scene: Scene, capsules, boxes, active, chunk: int | None = None, kernel: str | None = None,
+                  max_distance: float = math.inf) -> Contacts:
     """Signed distances of posed collision geoms.
 
     Args:
@@ -422,6 +426,9 @@ def geom_contacts(scene: Scene, capsules, boxes, active, chunk: int | None = Non
         the whole batch at once otherwise.
       kernel: one of :data:`KERNELS`; default :func:`default_kernel`. Both return the same
         distances up to float32 rounding (the numba kernel computes in float64).
+      max_distance: distances above it come back as it (MuJoCo's ``distmax``); the numba
+        kernel skips the pairs that cannot come within it, so 0 (contacts only: the
+        verdicts and penetration depths, every clear arm at 0) is the fastest.
 
     Under ``jax.vmap`` the mapped axes join the leading dims: the kernel always sees the
     whole batch of scenes at once (vectorized over scenes, chunked on CPU), however it is
@@ -431,35 +438,53 @@ def geom_contacts(scene: Scene, capsules, boxes, active, chunk: int | None = Non
         kernel = default_kernel(scene.max_arms)
     elif kernel not in KERNELS:
         raise ValueError(f"kernel {kernel!r}: expected one of {KERNELS}")
-    return _batched_kernel(scene, chunk, kernel)(capsules, boxes, active)
+    return _batched_kernel(scene, chunk, kernel, max_distance=float(max_distance))(capsules, boxes, active)
 
 
-def frame_contacts(scene: Scene, frames: ArmFrames, active, chunk: int | None = None, kernel: str | None = None) -> Contacts:
+def frame_contacts(scene: Scene, frames: ArmFrames, active, chunk: int | None = None, kernel: str | None = None,
+                   max_distance: float = math.inf) -> Contacts:
     """:func:`geom_contacts` of arms already posed by :func:`forward_kinematics`."""
-    return geom_contacts(scene, frames.capsules, frames.boxes, active, chunk, kernel)
+    return geom_contacts(scene, frames.capsules, frames.boxes, active, chunk, kernel, max_distance)
 
 
 @functools.cache
-def _batched_kernel(scene: Scene, chunk: int | None, kernel_name: str, swept: bool = False):
-    """The kernel on a flat batch, with a batching rule that folds vmapped axes into it.
+def _batched_kernel(scene: Scene, chunk: int | None, kernel_name: str, swept: bool = False, max_distance: float = math.inf):
+    """The kernel on posed geoms, batched as :func:`_folding_batch` describes.
 
     ``swept``: the posed geoms carry a configurations axis before the arms ([..., S, A, ...]),
     and the result is each arm's smallest distance over them (numba kernel only).
     """
     geom_dims = 5 if swept else 4
 
-    @jax.custom_batching.custom_vmap
-    def kernel(capsules, boxes, active):
-        batch, num_arms = capsules.shape[:-geom_dims], capsules.shape[-4]
-        capsules = capsules.reshape(-1, *capsules.shape[-geom_dims:])
-        boxes = boxes.reshape(-1, *boxes.shape[-geom_dims:])
-        active = jnp.broadcast_to(active, (*batch, num_arms)).reshape(-1, num_arms)
+    def flat(capsules, boxes, active):
         if kernel_name == "numba":
             steps = (capsules, boxes) if swept else (capsules[:, None], boxes[:, None])
-            contacts = _numba_contacts(scene, *steps, active)
-        else:
-            contacts = _contacts(scene, capsules, boxes, active, chunk)
-        return jax.tree.map(lambda x: x.reshape(*batch, num_arms), contacts)
+            return _numba_contacts(scene, *steps, active, max_distance)
+        return _contacts(scene, capsules, boxes, active, chunk, max_distance)
+
+    return _folding_batch(flat, (geom_dims, geom_dims, 1))
+
+
+@functools.cache
+def _joint_kernel(scene: Scene, max_distance: float = math.inf):
+    """The numba kernel on joints (base_pos [..., A, 3], base_quat [..., A, 4], joints
+    [..., S, A, 6], active [..., A]): it poses the arms itself, and each arm's distances are
+    the smallest over the S configurations."""
+    return _folding_batch(functools.partial(_numba_joint_contacts, scene, max_distance=max_distance), (2, 2, 3, 1))
+
+
+def _folding_batch(flat, trailing: tuple[int, ...]):
+    """``flat`` (inputs with one batch axis, :class:`Contacts` [N, A] out) on inputs with any
+    leading dims, broadcast together; input k has ``trailing[k]`` dims after them. Under
+    ``jax.vmap`` the mapped axes join the leading dims, so ``flat`` always sees the whole
+    batch of scenes at once (vectorized over scenes, chunked on CPU), however it is called."""
+
+    @jax.custom_batching.custom_vmap
+    def kernel(*inputs):
+        cores = [x.shape[x.ndim - dims:] for x, dims in zip(inputs, trailing)]
+        batch = jnp.broadcast_shapes(*(x.shape[:x.ndim - dims] for x, dims in zip(inputs, trailing)))
+        contacts = flat(*(jnp.broadcast_to(x, (*batch, *core)).reshape(-1, *core) for x, core in zip(inputs, cores)))
+        return jax.tree.map(lambda x: x.reshape(*batch, x.shape[-1]), contacts)
 
     @kernel.def_vmap
     def fold_batch(axis_size, in_batched, *args):
@@ -475,22 +500,42 @@ def _batched_kernel(scene: Scene, chunk: int | None, kernel_name: str, swept: bo
 _NUMBA_LOCK = threading.Lock()
 
 
-def _numba_contacts(scene: Scene, capsules, boxes, active) -> Contacts:
-    """:func:`compiled.batch_contacts` on a flat batch [N, S, A, ...] (min over S), through a host callback."""
+def _numba_constants(scene: Scene) -> tuple:
+    """The collision model as :func:`compiled.batch_contacts` takes it."""
     arm, pairs = scene.arm, scene.pairs
-    constants = (arm.capsule_radius.astype(np.float64), arm.box_half.astype(np.float64),
-                 pairs.self_pairs.astype(np.int64), pairs.between_arms, pairs.ground.astype(np.int64))
+    return (arm.capsule_radius.astype(np.float64), arm.box_half.astype(np.float64),
+            pairs.self_pairs.astype(np.int64), pairs.between_arms, pairs.ground.astype(np.int64))
+
+
+def _numba_contacts(scene: Scene, capsules, boxes, active, max_distance: float) -> Contacts:
+    """:func:`compiled.batch_contacts` on a flat batch [N, S, A, ...] (min over S), through a host callback."""
+    constants = _numba_constants(scene)
 
     def host(capsules, boxes, active):
         with _NUMBA_LOCK:
-            out = compiled.batch_contacts(*constants, np.asarray(capsules), np.asarray(boxes), np.asarray(active))
+            out = compiled.batch_contacts(*constants, np.asarray(capsules), np.asarray(boxes), np.asarray(active), max_distance)
         return tuple(x.astype(capsules.dtype, copy=False) for x in out)
 
     shape = jax.ShapeDtypeStruct(active.shape, capsules.dtype)
     return Contacts(*jax.pure_callback(host, (shape,) * 3, capsules, boxes, active))
 
 
-def _contacts(scene: Scene, capsules, boxes, active, chunk: int | None) -> Contacts:
+def _numba_joint_contacts(scene: Scene, base_pos, base_quat, joints, active, max_distance: float) -> Contacts:
+    """:func:`compiled.batch_joint_contacts` on a flat batch (joints [N, S, A, 6], min over S), through a host callback."""
+    constants = (compiled.arm_constants(scene.arm), *_numba_constants(scene))
+    dtype = joints.dtype
+
+    def host(base_pos, base_quat, joints, active):
+        with _NUMBA_LOCK:
+            out = compiled.batch_joint_contacts(*constants, np.asarray(base_pos), np.asarray(base_quat),
+                                                np.asarray(joints), np.asarray(active), max_distance)
+        return tuple(x.astype(dtype, copy=False) for x in out)
+
+    shape = jax.ShapeDtypeStruct(active.shape, dtype)
+    return Contacts(*jax.pure_callback(host, (shape,) * 3, base_pos.astype(dtype), base_quat.astype(dtype), joints, active))
+
+
+def _contacts(scene: Scene, capsules, boxes, active, chunk: int | None, max_distance: float) -> Contacts:
     """The XLA kernel on a flat batch: capsules [N, A, ncap, 2, 3], boxes [N, A, nbox, 4, 3], active [N, A]."""
     num_arms = capsules.shape[-4]
     n = capsules.shape[0]
@@ -516,8 +561,8 @@ def _contacts(scene: Scene, capsules, boxes, active, chunk: int | None) -> Conta
     self_dist, ground = _chunked(functools.partial(_flat_self_and_ground, scene), CPU_SELF_CHUNK if cpu else n,
                                  capsules, boxes)
 
-    def per_arm(x):  # [A, N] -> [N, A], inactive arms at +inf
-        return jnp.where(active, x.T, inf)
+    def per_arm(x):  # [A, N] -> [N, A], inactive arms at +inf, then at most max_distance
+        return jnp.minimum(jnp.where(active, x.T, inf), max_distance)
 
     return Contacts(between_arms=per_arm(between), within_arm=per_arm(self_dist), ground=per_arm(ground))
 
@@ -537,14 +582,19 @@ def _chunked(kernel, chunk: int, *inputs):
     return jax.tree.map(lambda x: jnp.moveaxis(x, 0, -2).reshape(*x.shape[1:-1], -1)[..., :n], out)
 
 
-def scene_contacts(scene: Scene, base_pos, base_quat, joints, active) -> Contacts:
+def scene_contacts(scene: Scene, base_pos, base_quat, joints, active, max_distance: float = math.inf) -> Contacts:
     """Kinematics + collision of padded scenes at one configuration.
 
     Args:
       base_pos: [..., max_arms, 3]; base_quat: [..., max_arms, 4] (wxyz);
       joints: [..., max_arms, 6]; active: [..., max_arms] bool.
+      max_distance: as :func:`geom_contacts`'s.
     """
-    return frame_contacts(scene, forward_kinematics(scene.arm, base_pos, base_quat, joints), active)
+    if default_kernel(scene.max_arms) == "numba":  # the kernel poses the arms itself
+        joints = jnp.asarray(joints)
+        return _joint_kernel(scene, float(max_distance))(jnp.asarray(base_pos), jnp.asarray(base_quat),
+                                                         joints[..., None, :, :], active)
+    return frame_contacts(scene, forward_kinematics(scene.arm, base_pos, base_quat, joints), active, max_distance=max_distance)
 
 
 def num_substeps(joints_from, joints_to, resolution: float = SWEEP_RESOLUTION) -> int:
@@ -554,7 +604,7 @@ def num_substeps(joints_from, joints_to, resolution: float = SWEEP_RESOLUTION) -
 
 
 def swept_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, active, substeps: int,
-                   end_frames: ArmFrames | None = None) -> Contacts:
+                   end_frames: ArmFrames | None = None, max_distance: float = math.inf) -> Contacts:
     """Collision along the straight joint-space motion ``joints_from -> joints_to``.
 
     Checks the configurations at fractions k / substeps, k = 1..substeps (the start is
@@ -562,7 +612,8 @@ def swept_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, ac
     ``substeps`` with :func:`num_substeps`, or as ``ceil(max_step / resolution)`` for a
     known largest joint step; it is static under ``jit``. A caller that already posed the
     arms at ``joints_to`` passes those ``ArmFrames`` as ``end_frames`` so the end
-    configuration's kinematics is not computed twice.
+    configuration's kinematics is not computed twice (the XLA kernel; the numba kernel
+    poses every configuration itself). ``max_distance``: as :func:`geom_contacts`'s.
     """
     inner = substeps if end_frames is None else substeps - 1
     fractions = jnp.arange(1, inner + 1, dtype=jnp.result_type(joints_from)) / substeps
@@ -570,18 +621,18 @@ def swept_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, ac
     def joints_at(fraction):
         return joints_from + fraction * (joints_to - joints_from)
 
-    if default_kernel(scene.max_arms) == "numba":  # one call over all configurations: each one's distances bound the next's
-        frames = [jax.vmap(lambda f: forward_kinematics(scene.arm, base_pos, base_quat, joints_at(f)))(fractions)] if inner else []
-        if end_frames is not None:
-            frames.append(jax.tree.map(lambda x: x[None], end_frames))
-        capsules, boxes = (jnp.moveaxis(jnp.concatenate([getattr(f, name) for f in frames]), 0, -5)
-                           for name in ("capsules", "boxes"))
-        return _batched_kernel(scene, None, "numba", swept=True)(capsules, boxes, active)
+    if default_kernel(scene.max_arms) == "numba":  # one call that poses every configuration: each one's distances bound the next's
+        shape = jnp.broadcast_shapes(jnp.shape(joints_from), jnp.shape(joints_to))
+        configs = [jnp.moveaxis(jax.vmap(joints_at)(fractions), 0, -3)] if inner else []
+        if end_frames is not None:  # the end configuration as given (the kernel poses it again: cheaper than its geoms)
+            configs.append(jnp.broadcast_to(jnp.asarray(joints_to, fractions.dtype), shape)[..., None, :, :])
+        return _joint_kernel(scene, float(max_distance))(jnp.asarray(base_pos), jnp.asarray(base_quat),
+                                                         jnp.concatenate(configs, axis=-3), active)
 
     def at(fraction):
-        return scene_contacts(scene, base_pos, base_quat, joints_at(fraction), active)
+        return scene_contacts(scene, base_pos, base_quat, joints_at(fraction), active, max_distance)
 
     per_step = [jax.tree.map(lambda x: x.min(axis=0), jax.vmap(at)(fractions))] if inner else []
     if end_frames is not None:
-        per_step.append(frame_contacts(scene, end_frames, active))
+        per_step.append(frame_contacts(scene, end_frames, active, max_distance=max_distance))
     return jax.tree.map(lambda *x: functools.reduce(jnp.minimum, x), *per_step)

@@ -235,6 +235,87 @@ def ground_distance(capsules, boxes, i, radius, box_half, ground):
 
 
 @_jit
+def quat_rotation(quat, i, rot):
+    """``rot[i]`` = the rotation matrix of the wxyz quaternion ``quat[i]``, normalized first."""
+    norm = math.sqrt(quat[i, 0] ** 2 + quat[i, 1] ** 2 + quat[i, 2] ** 2 + quat[i, 3] ** 2)
+    w, x, y, z = quat[i, 0] / norm, quat[i, 1] / norm, quat[i, 2] / norm, quat[i, 3] / norm
+    rot[i, 0, 0], rot[i, 0, 1], rot[i, 0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    rot[i, 1, 0], rot[i, 1, 1], rot[i, 1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    rot[i, 2, 0], rot[i, 2, 1], rot[i, 2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+
+
+@_jit
+def _place(pos, rot, b, local, g, e, out, i, translate):
+    """``out[i, g, e]`` = body ``b``'s frame applied to point ``local[g, e]`` (a direction if not ``translate``)."""
+    for m in range(3):
+        v = rot[b, m, 0] * local[g, e, 0] + rot[b, m, 1] * local[g, e, 1] + rot[b, m, 2] * local[g, e, 2]
+        out[i, g, e, m] = v + pos[b, m] if translate else v
+
+
+@_jit
+def pose_arm(base_pos, base_rot, joints, i, arm, pos, rot, fixed, capsules, boxes):
+    """Forward kinematics of arm ``i``: its world capsule ends ``capsules[i]`` [ncap, 2, 3] and
+    box frames ``boxes[i]`` [nbox, 4, 3] (centre, unit axes), from its base ``base_pos[i]``,
+    ``base_rot[i]`` and ``joints[i]``, all float64. ``arm``: the tuple of
+    :func:`arm_constants`; ``pos`` [nbody, 3], ``rot`` [nbody, 3, 3], ``fixed`` [3, 3]: work arrays."""
+    body_pos, body_rot, body_joint, joint_axis, capsule_body, capsule_ends, box_body, box_frame = arm
+    for m in range(3):
+        pos[0, m] = base_pos[i, m]
+        for n in range(3):
+            rot[0, m, n] = base_rot[i, m, n]
+    for b in range(1, body_pos.shape[0]):
+        for m in range(3):
+            pos[b, m] = pos[b - 1, m] + (rot[b - 1, m, 0] * body_pos[b, 0] + rot[b - 1, m, 1] * body_pos[b, 1]
+                                         + rot[b - 1, m, 2] * body_pos[b, 2])
+        j = body_joint[b]
+        for m in range(3):
+            for n in range(3):
+                fixed[m, n] = (rot[b - 1, m, 0] * body_rot[b, 0, n] + rot[b - 1, m, 1] * body_rot[b, 1, n]
+                               + rot[b - 1, m, 2] * body_rot[b, 2, n])
+        if j < 0:
+            for m in range(3):
+                for n in range(3):
+                    rot[b, m, n] = fixed[m, n]
+            continue
+        c, s = math.cos(joints[i, j]), math.sin(joints[i, j])  # Rodrigues: rotation about the joint axis
+        x, y, z = joint_axis[j, 0], joint_axis[j, 1], joint_axis[j, 2]
+        t = 1.0 - c
+        r00, r01, r02 = t * x * x + c, t * x * y - s * z, t * x * z + s * y
+        r10, r11, r12 = t * x * y + s * z, t * y * y + c, t * y * z - s * x
+        r20, r21, r22 = t * x * z - s * y, t * y * z + s * x, t * z * z + c
+        for m in range(3):
+            f0, f1, f2 = fixed[m, 0], fixed[m, 1], fixed[m, 2]
+            rot[b, m, 0] = f0 * r00 + f1 * r10 + f2 * r20
+            rot[b, m, 1] = f0 * r01 + f1 * r11 + f2 * r21
+            rot[b, m, 2] = f0 * r02 + f1 * r12 + f2 * r22
+    for g in range(capsule_body.shape[0]):
+        for e in range(2):
+            _place(pos, rot, capsule_body[g], capsule_ends, g, e, capsules, i, True)
+    for x in range(box_body.shape[0]):
+        for k in range(4):
+            _place(pos, rot, box_body[x], box_frame, x, k, boxes, i, k == 0)
+
+
+def rotations(quat) -> np.ndarray:
+    """Rotation matrices [n, 3, 3] (float64) of wxyz quaternions [n, 4], normalized first."""
+    quat = np.asarray(quat, np.float64).reshape(-1, 4)
+    out = np.empty((len(quat), 3, 3))
+    for i in range(len(quat)):
+        quat_rotation(quat, i, out)
+    return out
+
+
+def arm_constants(arm) -> tuple:
+    """The arm's kinematics as :func:`pose_arm` takes it (float64 / int64 arrays): body
+    offsets and fixed rotations, joint of each body (-1: none) and joint axes, capsule and
+    box bodies with their ends and frames in the body frame. ``arm``: a
+    :class:`mjx_multiarm.geometry.robot.ArmModel`."""
+    return (arm.body_pos.astype(np.float64), rotations(arm.body_quat), np.asarray(arm.body_joint, np.int64),
+            arm.joint_axis.astype(np.float64), arm.capsule_body.astype(np.int64), arm.capsule_ends.astype(np.float64),
+            arm.box_body.astype(np.int64), arm.box_frame.astype(np.float64))
+
+
+@_jit
 def _self_distance(i, capsules, boxes, centres, radii, radius, box_half, pairs, best):
     """The smaller of ``best`` and the smallest distance over arm ``i``'s self pairs: the
     pair of nearest centres first, then only the pairs whose sphere gap is below the
@@ -358,37 +439,64 @@ def _scene_contacts(capsules, boxes, active, radius, box_half, self_pairs, mask,
                       cand_a, cand_b, cand_d2, cand_r)
 
 
+@_jit
+def _work_arrays(num_arms, ngeom):
+    """The work arrays of :func:`_scene_contacts` after its outputs (allocated once per chunk of scenes)."""
+    return (np.empty((num_arms, ngeom, 3)), np.empty((num_arms, ngeom)), np.empty((num_arms, 3)),
+            np.empty((num_arms, 3)), np.empty(ngeom, np.int64), np.empty(ngeom, np.int64),
+            np.empty(ngeom * ngeom, np.int64), np.empty(ngeom * ngeom, np.int64), np.empty(ngeom * ngeom),
+            np.empty(ngeom * ngeom), np.empty(num_arms * num_arms), np.empty(num_arms * num_arms, np.int64),
+            np.empty(num_arms * num_arms, np.int64))
+
+
 @numba.njit(cache=True, parallel=True, error_model="numpy")
-def _batch(capsules, boxes, active, radius, box_half, self_pairs, mask, ground):
+def _batch(capsules, boxes, active, radius, box_half, self_pairs, mask, ground, max_distance):
     n, steps, num_arms = capsules.shape[0], capsules.shape[1], capsules.shape[2]
-    ngeom = radius.shape[0] + boxes.shape[3]
-    between = np.empty((n, num_arms), np.float32)
-    within = np.empty((n, num_arms), np.float32)
-    low = np.empty((n, num_arms), np.float32)
+    out = np.empty((3, n, num_arms), np.float32)
     chunks = min(n, 64)
     for c in numba.prange(chunks):  # work arrays once per chunk of scenes
-        out = np.empty((3, num_arms))
+        best = np.empty((3, num_arms))
         posed_capsules, posed_boxes = np.empty(capsules.shape[2:]), np.empty(boxes.shape[2:])  # float64
-        centres, radii = np.empty((num_arms, ngeom, 3)), np.empty((num_arms, ngeom))
-        lo, hi = np.empty((num_arms, 3)), np.empty((num_arms, 3))
-        near_i, near_j = np.empty(ngeom, np.int64), np.empty(ngeom, np.int64)
-        cand_a, cand_b = np.empty(ngeom * ngeom, np.int64), np.empty(ngeom * ngeom, np.int64)
-        cand_d2, cand_r = np.empty(ngeom * ngeom), np.empty(ngeom * ngeom)
-        gaps = np.empty(num_arms * num_arms)
-        first, second = np.empty(num_arms * num_arms, np.int64), np.empty(num_arms * num_arms, np.int64)
+        work = _work_arrays(num_arms, radius.shape[0] + boxes.shape[3])
         for s in range(c * n // chunks, (c + 1) * n // chunks):
-            out[:] = np.inf
+            best[:] = max_distance  # pairs that cannot come within it are skipped
             for k in range(steps):  # the running minimum over the configurations prunes the later ones
                 posed_capsules[:], posed_boxes[:] = capsules[s, k], boxes[s, k]
                 _scene_contacts(posed_capsules, posed_boxes, active[s], radius, box_half, self_pairs, mask, ground,
-                                out[0], out[1], out[2], centres, radii, lo, hi, near_i, near_j, cand_a, cand_b,
-                                cand_d2, cand_r, gaps, first, second)
+                                best[0], best[1], best[2], *work)
+            out[:, s] = best
+    return out[0], out[1], out[2]
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _batch_joints(base_pos, base_quat, joints, active, arm, radius, box_half, self_pairs, mask, ground, max_distance):
+    n, steps, num_arms = joints.shape[0], joints.shape[1], joints.shape[2]
+    ncap, nbox, nbody = radius.shape[0], box_half.shape[0], arm[0].shape[0]
+    out = np.empty((3, n, num_arms), np.float32)
+    chunks = min(n, 64)
+    for c in numba.prange(chunks):
+        best = np.empty((3, num_arms))
+        capsules, boxes = np.empty((num_arms, ncap, 2, 3)), np.empty((num_arms, nbox, 4, 3))
+        place, turn, config = np.empty((num_arms, 3)), np.empty((num_arms, 3, 3)), np.empty((num_arms, joints.shape[3]))
+        pos, rot, fixed = np.empty((nbody, 3)), np.empty((nbody, 3, 3)), np.empty((3, 3))
+        work = _work_arrays(num_arms, ncap + nbox)
+        for s in range(c * n // chunks, (c + 1) * n // chunks):
+            best[:] = max_distance  # pairs that cannot come within it are skipped
             for i in range(num_arms):
-                between[s, i], within[s, i], low[s, i] = out[0, i], out[1, i], out[2, i]
-    return between, within, low
+                place[i] = base_pos[s, i]
+                quat_rotation(base_quat[s], i, turn)
+            for k in range(steps):
+                for i in range(num_arms):
+                    if active[s, i]:
+                        config[i] = joints[s, k, i]
+                        pose_arm(place, turn, config, i, arm, pos, rot, fixed, capsules, boxes)
+                _scene_contacts(capsules, boxes, active[s], radius, box_half, self_pairs, mask, ground,
+                                best[0], best[1], best[2], *work)
+            out[:, s] = best
+    return out[0], out[1], out[2]
 
 
-def batch_contacts(radius, box_half, self_pairs, between_mask, ground, capsules, boxes, active):
+def batch_contacts(radius, box_half, self_pairs, between_mask, ground, capsules, boxes, active, max_distance=np.inf):
     """Per-arm smallest signed distances of posed scenes, each over one or more of its
     configurations (the substeps of a swept check), in parallel over scenes.
 
@@ -402,6 +510,22 @@ def batch_contacts(radius, box_half, self_pairs, between_mask, ground, capsules,
     Returns:
       (between_arms, within_arm, ground), each [N, A] float32: the smallest over the S
       configurations; ``inf`` where an arm has no such pair (inactive slots, a lone arm's
-      ``between_arms``).
+      ``between_arms``). Distances above ``max_distance`` come back as ``max_distance``
+      (as MuJoCo's ``mj_geomDistance`` with ``distmax``), and pairs that cannot come
+      within it are skipped: 0 asks for the contacts only, the fastest.
     """
-    return _batch(capsules, boxes, active, radius, box_half, self_pairs, between_mask, ground)
+    return _batch(capsules, boxes, active, radius, box_half, self_pairs, between_mask, ground, float(max_distance))
+
+
+def batch_joint_contacts(arm, radius, box_half, self_pairs, between_mask, ground, base_pos, base_quat, joints, active,
+                         max_distance=np.inf):
+    """:func:`batch_contacts` of arms posed here from their joints (float64 kinematics,
+    :func:`pose_arm`), so the caller need not pose them.
+
+    Args:
+      arm: :func:`arm_constants`; the next five and ``max_distance`` as in :func:`batch_contacts`.
+      base_pos: [N, A, 3]; base_quat: [N, A, 4] (wxyz); joints: [N, S, A, 6], S configurations
+        per scene; active: [N, A] bool.
+    """
+    return _batch_joints(base_pos, base_quat, joints, active, arm, radius, box_half, self_pairs, between_mask, ground,
+                         float(max_distance))

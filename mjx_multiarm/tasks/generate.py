@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_multiarm.geometry.collision import scene_contacts
+from mjx_multiarm.geometry.collision import CONTACTS_ONLY, scene_contacts
 from mjx_multiarm.geometry.ik import solve_positions
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import REACH
@@ -212,7 +212,7 @@ def _kernels(scene: Scene):
 
     @jax.jit
     def collided(base_pos, base_quat, joints, active):
-        return scene_contacts(scene, base_pos, base_quat, joints, active).collided
+        return scene_contacts(scene, base_pos, base_quat, joints, active, CONTACTS_ONLY).collided
 
     return ik, collided
 
