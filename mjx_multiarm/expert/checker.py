@@ -4,12 +4,12 @@ The planner asks one question at a time (is this configuration free? is this edg
 which the batched JAX kernel (:mod:`mjx_multiarm.geometry.collision`) answers only through a
 dispatch of 100-200 microseconds, after compiling for every batch shape. This module poses
 the arms and evaluates the same geometry (the capsules and boxes of ``assets/ur5.xml``, the
-pairs of :class:`mjx_multiarm.geometry.scene.CollisionPairs`, the exact distances of
-:mod:`mjx_multiarm.geometry.compiled`) as numba-compiled scalar code with early exits:
-bounding spheres of each arm and each geom skip pairs that cannot touch, and the first
-contact ends the query. Verdicts agree with the JAX kernel (``tests/test_expert_checker.py``)
-except within float rounding of contact: the kernel poses the arms in float32, this code in
-float64.
+pairs of :class:`mjx_multiarm.geometry.scene.CollisionPairs`, the kinematics and exact
+distances of :mod:`mjx_multiarm.geometry.compiled`) as numba-compiled scalar code with early
+exits: bounding spheres of each arm and each geom skip pairs that cannot touch, and the
+first contact ends the query. Verdicts agree with the JAX kernel
+(``tests/test_expert_checker.py``) except within float rounding of contact: the XLA kernel
+poses the arms in float32, this code in float64.
 
 Compiled functions are cached on disk by numba (``cache=True``), so worker processes do
 not compile again.

@@ -1,19 +1,22 @@
-"""The collision model as numba-compiled scalar code: exact geom distances, and a batched
-kernel with a broad phase for the CPU.
+"""The collision model as numba-compiled scalar code: arm kinematics, exact geom distances,
+and a batched kernel with a broad phase for the CPU.
 
 The distance formulas are those of :mod:`mjx_multiarm.geometry.collision` (capsule-capsule,
-capsule-box, box-box, signed where geoms overlap), evaluated one pair at a time in float64.
-They serve two callers:
+capsule-box, box-box, signed where geoms overlap), evaluated one pair at a time in float64;
+:func:`pose_arm` is :func:`~mjx_multiarm.geometry.kinematics.forward_kinematics` for one arm
+in float64. They serve two callers:
 
 - the expert planner's checker (:mod:`mjx_multiarm.expert.checker`), which asks about one
   configuration at a time;
-- :func:`batch_contacts`, the CPU kernel behind :func:`~mjx_multiarm.geometry.collision.geom_contacts`:
-  the same per-arm smallest distances as the JAX kernel (float32 geometry in, float32
-  distances out) for a batch of posed scenes, in parallel over scenes. Unlike the JAX
-  kernel, which must evaluate every geom pair of every scene (XLA has no cheap per-scene
-  branch), it skips the pairs that cannot change a result: bounding spheres per geom and
-  boxes per arm, arm pairs visited nearest first, a pair evaluated only while its sphere
-  gap is below the distance still to beat. Every distance it returns is still exact.
+- :func:`batch_contacts` and :func:`batch_joint_contacts`, the CPU kernel behind
+  :func:`~mjx_multiarm.geometry.collision.geom_contacts` (posed geoms in) and
+  ``scene_contacts`` / ``swept_contacts`` (joints in: it poses the arms itself): the same
+  per-arm smallest distances as the JAX kernel (float32 distances out) for a batch of
+  scenes, in parallel over scenes. Unlike the JAX kernel, which must evaluate every geom
+  pair of every scene (XLA has no cheap per-scene branch), it skips the pairs that cannot
+  change a result: bounding spheres per geom and boxes per arm, arm pairs visited nearest
+  first, a pair evaluated only while its sphere gap is below the distance still to beat,
+  which starts at ``max_distance`` (0: contacts only). Every distance it returns is exact.
 
 Compiled functions are cached on disk by numba (``cache=True``), so worker processes do
 not compile again.
