@@ -486,8 +486,9 @@ def _batch_joints(base_pos, base_quat, joints, active, arm, radius, box_half, se
         for s in range(c * n // chunks, (c + 1) * n // chunks):
             best[:] = max_distance  # pairs that cannot come within it are skipped
             for i in range(num_arms):
-                place[i] = base_pos[s, i]
-                quat_rotation(base_quat[s], i, turn)
+                if active[s, i]:  # padded slots may hold no valid quaternion
+                    place[i] = base_pos[s, i]
+                    quat_rotation(base_quat[s], i, turn)
             for k in range(steps):
                 for i in range(num_arms):
                     if active[s, i]:
