@@ -168,12 +168,10 @@ def test_compiled_fk_matches_the_jax_fk():
     q = rng.uniform(arm.joint_range[:, 0], arm.joint_range[:, 1], (count, 6))
     frames = forward_kinematics(arm, *(jnp.asarray(x, jnp.float32) for x in (pos, quat, q)))
     constants, rot = compiled.arm_constants(arm), compiled.rotations(quat)
-    nbody = len(arm.body_pos)
-    work = np.empty((nbody, 3)), np.empty((nbody, 3, 3)), np.empty((3, 3))
     capsules = np.empty((count, arm.num_capsules, 2, 3))
     boxes = np.empty((count, len(arm.box_half), 4, 3))
     for i in range(count):
-        compiled.pose_arm(pos, rot, q, i, constants, *work, capsules, boxes)
+        compiled.pose_arm(pos, rot, q, i, constants, capsules, boxes)
     np.testing.assert_allclose(capsules, frames.capsules, atol=2e-5)
     np.testing.assert_allclose(boxes, frames.boxes, atol=2e-5)
 

@@ -56,9 +56,8 @@ def _collides(joints, margin, base_pos, base_rot, arm, radius, box_half, self_pa
     centres = np.empty((k, ncap + nbox, 3))
     radii = np.empty((k, ncap + nbox))
     arm_radius = np.empty(k)  # about the base: all of an arm lies within it
-    pos, rot, fixed = np.empty((arm[0].shape[0], 3)), np.empty((arm[0].shape[0], 3, 3)), np.empty((3, 3))
     for i in range(k):
-        pose_arm(base_pos, base_rot, joints, i, arm, pos, rot, fixed, capsules, boxes)
+        pose_arm(base_pos, base_rot, joints, i, arm, capsules, boxes)
         if ground_distance(capsules, boxes, i, radius, box_half, ground) < margin:
             return True
         bounding_spheres(capsules, boxes, i, radius, box_half, centres, radii)

@@ -33,11 +33,6 @@ _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 
 @_jit
-def dot(u, v):
-    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
-
-
-@_jit
 def centre_distance2(centres, i, a, j, b):
     """Squared distance between centre ``a`` of arm ``i`` and centre ``b`` of arm ``j`` (``centres`` [arms, ngeom, 3])."""
     return ((centres[i, a, 0] - centres[j, b, 0]) ** 2 + (centres[i, a, 1] - centres[j, b, 1]) ** 2
@@ -138,53 +133,64 @@ def segment_box_distance(capsules, i, a, boxes, j, x, half):
 
 
 @_jit
-def box_box_distance(box_a, half_a, box_b, half_b):
-    """Signed distance between boxes (as :func:`mjx_multiarm.geometry.collision.box_box_distance`):
-    separating-axis penetration when they overlap, else A's 12 edges and B's 8 corners."""
-    r = np.empty((3, 3))
-    t = np.empty(3)
-    for i in range(3):
-        t[i] = 0.0
-        for m in range(3):
-            t[i] += (box_b[0, m] - box_a[0, m]) * box_a[i + 1, m]
-        for j in range(3):
-            r[i, j] = dot(box_a[i + 1], box_b[j + 1])
-    ar = np.abs(r) + 1e-6
+def _axes_dot(boxes, i, x, k, j, y, n):
+    """Axis ``k`` of box ``x`` of arm ``i`` dotted with axis ``n`` of box ``y`` of arm ``j``."""
+    return (boxes[i, x, k + 1, 0] * boxes[j, y, n + 1, 0] + boxes[i, x, k + 1, 1] * boxes[j, y, n + 1, 1]
+            + boxes[i, x, k + 1, 2] * boxes[j, y, n + 1, 2])
+
+
+@_jit
+def box_box_distance(boxes, i, x, j, y, box_half):
+    """Signed distance between box ``x`` of arm ``i`` (A) and box ``y`` of arm ``j`` (B)
+    (frames [arms, nbox, 4, 3]: centre, unit axes; half sizes ``box_half`` [nbox, 3]), as
+    :func:`mjx_multiarm.geometry.collision.box_box_distance`: separating-axis penetration
+    when they overlap, else A's 12 edges and B's 8 corners. Works on scalars and tuples
+    (no temporary arrays: this runs inside the pair loops)."""
+    ha, hb = (box_half[x, 0], box_half[x, 1], box_half[x, 2]), (box_half[y, 0], box_half[y, 1], box_half[y, 2])
+    d0, d1, d2 = boxes[j, y, 0, 0] - boxes[i, x, 0, 0], boxes[j, y, 0, 1] - boxes[i, x, 0, 1], boxes[j, y, 0, 2] - boxes[i, x, 0, 2]
+    t = (d0 * boxes[i, x, 1, 0] + d1 * boxes[i, x, 1, 1] + d2 * boxes[i, x, 1, 2],  # B's centre in A's frame
+         d0 * boxes[i, x, 2, 0] + d1 * boxes[i, x, 2, 1] + d2 * boxes[i, x, 2, 2],
+         d0 * boxes[i, x, 3, 0] + d1 * boxes[i, x, 3, 1] + d2 * boxes[i, x, 3, 2])
+    r = ((_axes_dot(boxes, i, x, 0, j, y, 0), _axes_dot(boxes, i, x, 0, j, y, 1), _axes_dot(boxes, i, x, 0, j, y, 2)),
+         (_axes_dot(boxes, i, x, 1, j, y, 0), _axes_dot(boxes, i, x, 1, j, y, 1), _axes_dot(boxes, i, x, 1, j, y, 2)),
+         (_axes_dot(boxes, i, x, 2, j, y, 0), _axes_dot(boxes, i, x, 2, j, y, 1), _axes_dot(boxes, i, x, 2, j, y, 2)))
+    ar = ((abs(r[0][0]) + 1e-6, abs(r[0][1]) + 1e-6, abs(r[0][2]) + 1e-6),
+          (abs(r[1][0]) + 1e-6, abs(r[1][1]) + 1e-6, abs(r[1][2]) + 1e-6),
+          (abs(r[2][0]) + 1e-6, abs(r[2][1]) + 1e-6, abs(r[2][2]) + 1e-6))
     gap = -np.inf
-    for i in range(3):
-        gap = max(gap, abs(t[i]) - half_a[i] - (half_b[0] * ar[i, 0] + half_b[1] * ar[i, 1] + half_b[2] * ar[i, 2]))
-    for j in range(3):
-        gap = max(gap, abs(t[0] * r[0, j] + t[1] * r[1, j] + t[2] * r[2, j]) - half_b[j]
-                  - (half_a[0] * ar[0, j] + half_a[1] * ar[1, j] + half_a[2] * ar[2, j]))
-    for i in range(3):
-        i1, i2 = (i + 1) % 3, (i + 2) % 3
-        for j in range(3):
-            j1, j2 = (j + 1) % 3, (j + 2) % 3
-            centre = abs(t[i2] * r[i1, j] - t[i1] * r[i2, j])
-            extent = half_a[i1] * ar[i2, j] + half_a[i2] * ar[i1, j] + half_b[j1] * ar[i, j2] + half_b[j2] * ar[i, j1]
-            gap = max(gap, (centre - extent) / (math.sqrt(max(1.0 - r[i, j] ** 2, 0.0)) + 1e-6))
+    for a in range(3):
+        gap = max(gap, abs(t[a]) - ha[a] - (hb[0] * ar[a][0] + hb[1] * ar[a][1] + hb[2] * ar[a][2]))
+    for b in range(3):
+        gap = max(gap, abs(t[0] * r[0][b] + t[1] * r[1][b] + t[2] * r[2][b]) - hb[b]
+                  - (ha[0] * ar[0][b] + ha[1] * ar[1][b] + ha[2] * ar[2][b]))
+    for a in range(3):
+        a1, a2 = (a + 1) % 3, (a + 2) % 3
+        for b in range(3):
+            b1, b2 = (b + 1) % 3, (b + 2) % 3
+            centre = abs(t[a2] * r[a1][b] - t[a1] * r[a2][b])
+            extent = ha[a1] * ar[a2][b] + ha[a2] * ar[a1][b] + hb[b1] * ar[a][b2] + hb[b2] * ar[a][b1]
+            gap = max(gap, (centre - extent) / (math.sqrt(max(1.0 - r[a][b] ** 2, 0.0)) + 1e-6))
     if gap < 0.0:
         return gap
+    c = (-(t[0] * r[0][0] + t[1] * r[1][0] + t[2] * r[2][0]),  # A's centre in B's frame
+         -(t[0] * r[0][1] + t[1] * r[1][1] + t[2] * r[2][1]),
+         -(t[0] * r[0][2] + t[1] * r[1][2] + t[2] * r[2][2]))
     nearest = np.inf
-    centre_in_b = np.empty(3)
-    for j in range(3):
-        centre_in_b[j] = -(t[0] * r[0, j] + t[1] * r[1, j] + t[2] * r[2, j])
-    start, step = np.empty(3), np.empty(3)
-    for k in range(3):
-        i1, i2 = (k + 1) % 3, (k + 2) % 3
+    for k in range(3):  # A's edges along axis k, in B's frame
+        k1, k2 = (k + 1) % 3, (k + 2) % 3
+        step = (2.0 * ha[k] * r[k][0], 2.0 * ha[k] * r[k][1], 2.0 * ha[k] * r[k][2])
         for s1 in (-1.0, 1.0):
             for s2 in (-1.0, 1.0):
-                for j in range(3):
-                    start[j] = (centre_in_b[j] + s1 * half_a[i1] * r[i1, j] + s2 * half_a[i2] * r[i2, j]
-                                - half_a[k] * r[k, j])
-                    step[j] = 2.0 * half_a[k] * r[k, j]
-                nearest = min(nearest, segment_aabb_distance(start, step, half_b))
-    for s0 in (-1.0, 1.0):
+                start = (c[0] + s1 * ha[k1] * r[k1][0] + s2 * ha[k2] * r[k2][0] - ha[k] * r[k][0],
+                         c[1] + s1 * ha[k1] * r[k1][1] + s2 * ha[k2] * r[k2][1] - ha[k] * r[k][1],
+                         c[2] + s1 * ha[k1] * r[k1][2] + s2 * ha[k2] * r[k2][2] - ha[k] * r[k][2])
+                nearest = min(nearest, segment_aabb_distance(start, step, hb))
+    for s0 in (-1.0, 1.0):  # B's corners, in A's frame
         for s1 in (-1.0, 1.0):
             for s2 in (-1.0, 1.0):
                 total = 0.0
-                for i in range(3):
-                    o = _excess(t[i] + s0 * half_b[0] * r[i, 0] + s1 * half_b[1] * r[i, 1] + s2 * half_b[2] * r[i, 2], half_a[i])
+                for a in range(3):
+                    o = _excess(t[a] + s0 * hb[0] * r[a][0] + s1 * hb[1] * r[a][1] + s2 * hb[2] * r[a][2], ha[a])
                     total += o * o
                 nearest = min(nearest, math.sqrt(total))
     return nearest
@@ -198,7 +204,7 @@ def geom_distance(capsules, boxes, i, ga, j, gb, radius, box_half):
     if ga < ncap and gb < ncap:
         return segment_distance(capsules, i, ga, j, gb) - radius[ga] - radius[gb]
     if ga >= ncap and gb >= ncap:
-        return box_box_distance(boxes[i, ga - ncap], box_half[ga - ncap], boxes[j, gb - ncap], box_half[gb - ncap])
+        return box_box_distance(boxes, i, ga - ncap, j, gb - ncap, box_half)
     if ga < ncap:
         return segment_box_distance(capsules, i, ga, boxes, j, gb - ncap, box_half[gb - ncap]) - radius[ga]
     return segment_box_distance(capsules, j, gb, boxes, i, ga - ncap, box_half[ga - ncap]) - radius[gb]
@@ -248,55 +254,59 @@ def quat_rotation(quat, i, rot):
 
 
 @_jit
-def _place(pos, rot, b, local, g, e, out, i, translate):
-    """``out[i, g, e]`` = body ``b``'s frame applied to point ``local[g, e]`` (a direction if not ``translate``)."""
-    for m in range(3):
-        v = rot[b, m, 0] * local[g, e, 0] + rot[b, m, 1] * local[g, e, 1] + rot[b, m, 2] * local[g, e, 2]
-        out[i, g, e, m] = v + pos[b, m] if translate else v
-
-
-@_jit
-def pose_arm(base_pos, base_rot, joints, i, arm, pos, rot, fixed, capsules, boxes):
+def pose_arm(base_pos, base_rot, joints, i, arm, capsules, boxes):
     """Forward kinematics of arm ``i``: its world capsule ends ``capsules[i]`` [ncap, 2, 3] and
     box frames ``boxes[i]`` [nbox, 4, 3] (centre, unit axes), from its base ``base_pos[i]``,
-    ``base_rot[i]`` and ``joints[i]``, all float64. ``arm``: the tuple of
-    :func:`arm_constants`; ``pos`` [nbody, 3], ``rot`` [nbody, 3, 3], ``fixed`` [3, 3]: work arrays."""
+    ``base_rot[i]`` and ``joints[i]``, all float64. ``arm``: the tuple of :func:`arm_constants`.
+
+    The body frames are chained in local scalars (registers, not arrays that the compiler
+    must assume alias the outputs), and each body's geoms are placed as the chain reaches it."""
     body_pos, body_rot, body_joint, joint_axis, capsule_body, capsule_ends, box_body, box_frame = arm
-    for m in range(3):
-        pos[0, m] = base_pos[i, m]
-        for n in range(3):
-            rot[0, m, n] = base_rot[i, m, n]
-    for b in range(1, body_pos.shape[0]):
-        for m in range(3):
-            pos[b, m] = pos[b - 1, m] + (rot[b - 1, m, 0] * body_pos[b, 0] + rot[b - 1, m, 1] * body_pos[b, 1]
-                                         + rot[b - 1, m, 2] * body_pos[b, 2])
-        j = body_joint[b]
-        for m in range(3):
-            for n in range(3):
-                fixed[m, n] = (rot[b - 1, m, 0] * body_rot[b, 0, n] + rot[b - 1, m, 1] * body_rot[b, 1, n]
-                               + rot[b - 1, m, 2] * body_rot[b, 2, n])
-        if j < 0:
-            for m in range(3):
-                for n in range(3):
-                    rot[b, m, n] = fixed[m, n]
-            continue
-        c, s = math.cos(joints[i, j]), math.sin(joints[i, j])  # Rodrigues: rotation about the joint axis
-        x, y, z = joint_axis[j, 0], joint_axis[j, 1], joint_axis[j, 2]
-        t = 1.0 - c
-        r00, r01, r02 = t * x * x + c, t * x * y - s * z, t * x * z + s * y
-        r10, r11, r12 = t * x * y + s * z, t * y * y + c, t * y * z - s * x
-        r20, r21, r22 = t * x * z - s * y, t * y * z + s * x, t * z * z + c
-        for m in range(3):
-            f0, f1, f2 = fixed[m, 0], fixed[m, 1], fixed[m, 2]
-            rot[b, m, 0] = f0 * r00 + f1 * r10 + f2 * r20
-            rot[b, m, 1] = f0 * r01 + f1 * r11 + f2 * r21
-            rot[b, m, 2] = f0 * r02 + f1 * r12 + f2 * r22
-    for g in range(capsule_body.shape[0]):
-        for e in range(2):
-            _place(pos, rot, capsule_body[g], capsule_ends, g, e, capsules, i, True)
-    for x in range(box_body.shape[0]):
-        for k in range(4):
-            _place(pos, rot, box_body[x], box_frame, x, k, boxes, i, k == 0)
+    p0, p1, p2 = base_pos[i, 0], base_pos[i, 1], base_pos[i, 2]
+    r00, r01, r02 = base_rot[i, 0, 0], base_rot[i, 0, 1], base_rot[i, 0, 2]
+    r10, r11, r12 = base_rot[i, 1, 0], base_rot[i, 1, 1], base_rot[i, 1, 2]
+    r20, r21, r22 = base_rot[i, 2, 0], base_rot[i, 2, 1], base_rot[i, 2, 2]
+    for b in range(body_pos.shape[0]):
+        if b > 0:  # body 0 is the base frame itself
+            x, y, z = body_pos[b, 0], body_pos[b, 1], body_pos[b, 2]
+            p0, p1, p2 = (p0 + r00 * x + r01 * y + r02 * z, p1 + r10 * x + r11 * y + r12 * z,
+                          p2 + r20 * x + r21 * y + r22 * z)
+            q = body_rot[b]  # the parent frame times the body's fixed rotation
+            r00, r01, r02 = (r00 * q[0, 0] + r01 * q[1, 0] + r02 * q[2, 0], r00 * q[0, 1] + r01 * q[1, 1] + r02 * q[2, 1],
+                             r00 * q[0, 2] + r01 * q[1, 2] + r02 * q[2, 2])
+            r10, r11, r12 = (r10 * q[0, 0] + r11 * q[1, 0] + r12 * q[2, 0], r10 * q[0, 1] + r11 * q[1, 1] + r12 * q[2, 1],
+                             r10 * q[0, 2] + r11 * q[1, 2] + r12 * q[2, 2])
+            r20, r21, r22 = (r20 * q[0, 0] + r21 * q[1, 0] + r22 * q[2, 0], r20 * q[0, 1] + r21 * q[1, 1] + r22 * q[2, 1],
+                             r20 * q[0, 2] + r21 * q[1, 2] + r22 * q[2, 2])
+            j = body_joint[b]
+            if j >= 0:  # times the joint's rotation about its axis (Rodrigues)
+                c, s = math.cos(joints[i, j]), math.sin(joints[i, j])
+                x, y, z = joint_axis[j, 0], joint_axis[j, 1], joint_axis[j, 2]
+                t = 1.0 - c
+                j00, j01, j02 = t * x * x + c, t * x * y - s * z, t * x * z + s * y
+                j10, j11, j12 = t * x * y + s * z, t * y * y + c, t * y * z - s * x
+                j20, j21, j22 = t * x * z - s * y, t * y * z + s * x, t * z * z + c
+                r00, r01, r02 = (r00 * j00 + r01 * j10 + r02 * j20, r00 * j01 + r01 * j11 + r02 * j21,
+                                 r00 * j02 + r01 * j12 + r02 * j22)
+                r10, r11, r12 = (r10 * j00 + r11 * j10 + r12 * j20, r10 * j01 + r11 * j11 + r12 * j21,
+                                 r10 * j02 + r11 * j12 + r12 * j22)
+                r20, r21, r22 = (r20 * j00 + r21 * j10 + r22 * j20, r20 * j01 + r21 * j11 + r22 * j21,
+                                 r20 * j02 + r21 * j12 + r22 * j22)
+        for g in range(capsule_body.shape[0]):
+            if capsule_body[g] == b:
+                for e in range(2):
+                    x, y, z = capsule_ends[g, e, 0], capsule_ends[g, e, 1], capsule_ends[g, e, 2]
+                    capsules[i, g, e, 0] = p0 + r00 * x + r01 * y + r02 * z
+                    capsules[i, g, e, 1] = p1 + r10 * x + r11 * y + r12 * z
+                    capsules[i, g, e, 2] = p2 + r20 * x + r21 * y + r22 * z
+        for g in range(box_body.shape[0]):
+            if box_body[g] == b:
+                for k in range(4):  # the centre, then the axes (directions: not translated)
+                    x, y, z = box_frame[g, k, 0], box_frame[g, k, 1], box_frame[g, k, 2]
+                    o0, o1, o2 = (p0, p1, p2) if k == 0 else (0.0, 0.0, 0.0)
+                    boxes[i, g, k, 0] = o0 + r00 * x + r01 * y + r02 * z
+                    boxes[i, g, k, 1] = o1 + r10 * x + r11 * y + r12 * z
+                    boxes[i, g, k, 2] = o2 + r20 * x + r21 * y + r22 * z
 
 
 def rotations(quat) -> np.ndarray:
@@ -356,21 +366,18 @@ def _near_geoms(centres, radii, i, reach, lo, hi, j, out):
 
 
 @_jit
-def _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_half, mask, best, near_i, near_j,
-                  cand_a, cand_b, cand_d2, cand_r):
+def _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_half, mask, best, near_i, near_j):
     """Lower ``best[i]`` and ``best[j]`` to the distance of arms i and j where it is smaller.
 
-    A geom pair is skipped when its sphere gap is at least ``bound`` (and not negative):
-    the larger of the two arms' current bests (a pair beyond it lowers neither) or, while
-    one of them has none, an upper bound of this arm pair's distance: the distance between
-    two of their geoms' centres (every geom contains its centre).
+    A geom pair is measured only when its sphere gap is below the larger of the two arms'
+    current bests: a pair beyond it lowers neither. While one of them has none, the pair of
+    each arm's geom nearest the other arm's box is measured first, and its distance bounds
+    which geoms can take part at all.
     """
-    bound = max(best[i], best[j])
-    ng = radii.shape[1]
-    if bound == np.inf:
-        ga = gb = 0
+    ga = gb = -1
+    if max(best[i], best[j]) == np.inf:
         da = db = np.inf
-        for g in range(ng):  # each arm's geom nearest the other arm's box
+        for g in range(radii.shape[1]):  # each arm's geom nearest the other arm's box
             ea = eb = 0.0
             for m in range(3):
                 ea += max(lo[j, m] - centres[i, g, m], centres[i, g, m] - hi[j, m], 0.0) ** 2
@@ -379,35 +386,26 @@ def _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_hal
                 ga, da = g, ea
             if eb < db:
                 gb, db = g, eb
-        bound = math.sqrt(centre_distance2(centres, i, ga, j, gb))
-    reach = max(bound, 0.0)
+        if mask[ga, gb]:
+            d = geom_distance(capsules, boxes, i, ga, j, gb, radius, box_half)
+            best[i], best[j] = min(best[i], d), min(best[j], d)
+    reach = max(best[i], best[j], 0.0)
     ni = _near_geoms(centres, radii, i, reach, lo, hi, j, near_i)
     nj = _near_geoms(centres, radii, j, reach, lo, hi, i, near_j)
-    count, seed, seed_d2 = 0, 0, np.inf
     for x in range(ni):
         a = near_i[x]
         for y in range(nj):
             b = near_j[y]
-            d2 = centre_distance2(centres, i, a, j, b)
-            spheres = radii[i, a] + radii[j, b]
-            if mask[a, b] and d2 < (reach + spheres) ** 2:
-                cand_a[count], cand_b[count], cand_d2[count], cand_r[count] = a, b, d2, spheres
-                if d2 < seed_d2:
-                    seed, seed_d2 = count, d2
-                count += 1
-    if count == 0:
-        return
-    for k in range(-1, count):  # the pair of nearest centres first
-        p = seed if k < 0 else k
-        limit = max(min(max(best[i], best[j]), bound), 0.0) + cand_r[p]
-        if k != seed and cand_d2[p] < limit * limit:
-            d = geom_distance(capsules, boxes, i, cand_a[p], j, cand_b[p], radius, box_half)
-            best[i], best[j] = min(best[i], d), min(best[j], d)
+            if mask[a, b] and (a != ga or b != gb):
+                limit = max(best[i], best[j], 0.0) + radii[i, a] + radii[j, b]
+                if centre_distance2(centres, i, a, j, b) < limit * limit:
+                    d = geom_distance(capsules, boxes, i, a, j, b, radius, box_half)
+                    best[i], best[j] = min(best[i], d), min(best[j], d)
 
 
 @_jit
 def _scene_contacts(capsules, boxes, active, radius, box_half, self_pairs, mask, ground, between, within, low,
-                    centres, radii, lo, hi, near_i, near_j, cand_a, cand_b, cand_d2, cand_r, gaps, first, second):
+                    centres, radii, lo, hi, near_i, near_j, gaps, first, second):
     """Lower ``between``, ``within`` and ``low`` [A] (per arm) to one posed scene's smallest
     distances where they are smaller; inactive arms are left as they are. The arguments
     after them are work arrays. Pairs that cannot lower a value are skipped, so a caller
@@ -438,8 +436,7 @@ def _scene_contacts(capsules, boxes, active, radius, box_half, self_pairs, mask,
         bound = max(between[i], between[j])
         if gaps[o] > 0.0 and gaps[o] >= max(bound, 0.0) ** 2:
             continue
-        _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_half, mask, between, near_i, near_j,
-                      cand_a, cand_b, cand_d2, cand_r)
+        _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_half, mask, between, near_i, near_j)
 
 
 @_jit
@@ -447,8 +444,7 @@ def _work_arrays(num_arms, ngeom):
     """The work arrays of :func:`_scene_contacts` after its outputs (allocated once per chunk of scenes)."""
     return (np.empty((num_arms, ngeom, 3)), np.empty((num_arms, ngeom)), np.empty((num_arms, 3)),
             np.empty((num_arms, 3)), np.empty(ngeom, np.int64), np.empty(ngeom, np.int64),
-            np.empty(ngeom * ngeom, np.int64), np.empty(ngeom * ngeom, np.int64), np.empty(ngeom * ngeom),
-            np.empty(ngeom * ngeom), np.empty(num_arms * num_arms), np.empty(num_arms * num_arms, np.int64),
+            np.empty(num_arms * num_arms), np.empty(num_arms * num_arms, np.int64),
             np.empty(num_arms * num_arms, np.int64))
 
 
@@ -474,14 +470,13 @@ def _batch(capsules, boxes, active, radius, box_half, self_pairs, mask, ground, 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def _batch_joints(base_pos, base_quat, joints, active, arm, radius, box_half, self_pairs, mask, ground, max_distance):
     n, steps, num_arms = joints.shape[0], joints.shape[1], joints.shape[2]
-    ncap, nbox, nbody = radius.shape[0], box_half.shape[0], arm[0].shape[0]
+    ncap, nbox = radius.shape[0], box_half.shape[0]
     out = np.empty((3, n, num_arms), np.float32)
     chunks = min(n, 64)
     for c in numba.prange(chunks):
         best = np.empty((3, num_arms))
         capsules, boxes = np.empty((num_arms, ncap, 2, 3)), np.empty((num_arms, nbox, 4, 3))
         place, turn, config = np.empty((num_arms, 3)), np.empty((num_arms, 3, 3)), np.empty((num_arms, joints.shape[3]))
-        pos, rot, fixed = np.empty((nbody, 3)), np.empty((nbody, 3, 3)), np.empty((3, 3))
         work = _work_arrays(num_arms, ncap + nbox)
         for s in range(c * n // chunks, (c + 1) * n // chunks):
             best[:] = max_distance  # pairs that cannot come within it are skipped
@@ -493,7 +488,7 @@ def _batch_joints(base_pos, base_quat, joints, active, arm, radius, box_half, se
                 for i in range(num_arms):
                     if active[s, i]:
                         config[i] = joints[s, k, i]
-                        pose_arm(place, turn, config, i, arm, pos, rot, fixed, capsules, boxes)
+                        pose_arm(place, turn, config, i, arm, capsules, boxes)
                 _scene_contacts(capsules, boxes, active[s], radius, box_half, self_pairs, mask, ground,
                                 best[0], best[1], best[2], *work)
             out[:, s] = best
