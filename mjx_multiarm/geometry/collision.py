@@ -507,32 +507,31 @@ def _numba_constants(scene: Scene) -> tuple:
             pairs.self_pairs.astype(np.int64), pairs.between_arms, pairs.ground.astype(np.int64))
 
 
-def _numba_contacts(scene: Scene, capsules, boxes, active, max_distance: float) -> Contacts:
-    """:func:`compiled.batch_contacts` on a flat batch [N, S, A, ...] (min over S), through a host callback."""
-    constants = _numba_constants(scene)
+def _numba_callback(batch, constants: tuple, inputs: tuple, max_distance: float) -> Contacts:
+    """``batch(*constants, *inputs, max_distance)`` (a :mod:`compiled` batch kernel) through a
+    host callback; the last input is ``active`` [N, A], and the outputs take the first input's dtype."""
+    dtype = inputs[0].dtype
 
-    def host(capsules, boxes, active):
+    def host(*arrays):
         with _NUMBA_LOCK:
-            out = compiled.batch_contacts(*constants, np.asarray(capsules), np.asarray(boxes), np.asarray(active), max_distance)
-        return tuple(x.astype(capsules.dtype, copy=False) for x in out)
+            out = batch(*constants, *(np.asarray(x) for x in arrays), max_distance)
+        return tuple(x.astype(dtype, copy=False) for x in out)
 
-    shape = jax.ShapeDtypeStruct(active.shape, capsules.dtype)
-    return Contacts(*jax.pure_callback(host, (shape,) * 3, capsules, boxes, active))
+    shape = jax.ShapeDtypeStruct(inputs[-1].shape, dtype)
+    return Contacts(*jax.pure_callback(host, (shape,) * 3, *inputs))
+
+
+def _numba_contacts(scene: Scene, capsules, boxes, active, max_distance: float) -> Contacts:
+    """:func:`compiled.batch_contacts` on a flat batch [N, S, A, ...] (min over S)."""
+    return _numba_callback(compiled.batch_contacts, _numba_constants(scene), (capsules, boxes, active), max_distance)
 
 
 def _numba_joint_contacts(scene: Scene, base_pos, base_quat, joints, active, max_distance: float) -> Contacts:
-    """:func:`compiled.batch_joint_contacts` on a flat batch (joints [N, S, A, 6], min over S), through a host callback."""
+    """:func:`compiled.batch_joint_contacts` on a flat batch (joints [N, S, A, 6], min over S)."""
     constants = (compiled.arm_constants(scene.arm), *_numba_constants(scene))
     dtype = joints.dtype
-
-    def host(base_pos, base_quat, joints, active):
-        with _NUMBA_LOCK:
-            out = compiled.batch_joint_contacts(*constants, np.asarray(base_pos), np.asarray(base_quat),
-                                                np.asarray(joints), np.asarray(active), max_distance)
-        return tuple(x.astype(dtype, copy=False) for x in out)
-
-    shape = jax.ShapeDtypeStruct(active.shape, dtype)
-    return Contacts(*jax.pure_callback(host, (shape,) * 3, base_pos.astype(dtype), base_quat.astype(dtype), joints, active))
+    return _numba_callback(compiled.batch_joint_contacts, constants,
+                           (base_pos.astype(dtype), base_quat.astype(dtype), joints, active), max_distance)
 
 
 def _contacts(scene: Scene, capsules, boxes, active, chunk: int | None, max_distance: float) -> Contacts:
