@@ -500,11 +500,15 @@ def _folding_batch(flat, trailing: tuple[int, ...]):
 _NUMBA_LOCK = threading.Lock()
 
 
+@functools.cache
 def _numba_constants(scene: Scene) -> tuple:
-    """The collision model as :func:`compiled.batch_contacts` takes it."""
+    """The collision model as :func:`compiled.batch_contacts` takes it; the self pairs
+    nearest first over 64 random configurations in the joint ranges (fixed seed)."""
     arm, pairs = scene.arm, scene.pairs
-    return (arm.capsule_radius.astype(np.float64), arm.box_half.astype(np.float64),
-            pairs.self_pairs.astype(np.int64), pairs.between_arms, pairs.ground.astype(np.int64))
+    radius, box_half = arm.capsule_radius.astype(np.float64), arm.box_half.astype(np.float64)
+    joints = np.random.default_rng(0).uniform(arm.joint_range[:, 0], arm.joint_range[:, 1], (64, 6))
+    self_pairs = compiled.nearest_first(compiled.arm_constants(arm), radius, box_half, pairs.self_pairs.astype(np.int64), joints)
+    return radius, box_half, self_pairs, pairs.between_arms, pairs.ground.astype(np.int64)
 
 
 def _numba_callback(batch, constants: tuple, inputs: tuple, max_distance: float) -> Contacts:

@@ -261,52 +261,56 @@ def pose_arm(base_pos, base_rot, joints, i, arm, capsules, boxes):
 
     The body frames are chained in local scalars (registers, not arrays that the compiler
     must assume alias the outputs), and each body's geoms are placed as the chain reaches it."""
-    body_pos, body_rot, body_joint, joint_axis, capsule_body, capsule_ends, box_body, box_frame = arm
+    body_pos, body_rot, body_turns, body_joint, joint_axis, capsule_body, capsule_ends, box_body, box_frame = arm
+    g = x = 0  # the next capsule and box to place (ordered by body)
     p0, p1, p2 = base_pos[i, 0], base_pos[i, 1], base_pos[i, 2]
     r00, r01, r02 = base_rot[i, 0, 0], base_rot[i, 0, 1], base_rot[i, 0, 2]
     r10, r11, r12 = base_rot[i, 1, 0], base_rot[i, 1, 1], base_rot[i, 1, 2]
     r20, r21, r22 = base_rot[i, 2, 0], base_rot[i, 2, 1], base_rot[i, 2, 2]
     for b in range(body_pos.shape[0]):
         if b > 0:  # body 0 is the base frame itself
-            x, y, z = body_pos[b, 0], body_pos[b, 1], body_pos[b, 2]
-            p0, p1, p2 = (p0 + r00 * x + r01 * y + r02 * z, p1 + r10 * x + r11 * y + r12 * z,
-                          p2 + r20 * x + r21 * y + r22 * z)
-            q = body_rot[b]  # the parent frame times the body's fixed rotation
-            r00, r01, r02 = (r00 * q[0, 0] + r01 * q[1, 0] + r02 * q[2, 0], r00 * q[0, 1] + r01 * q[1, 1] + r02 * q[2, 1],
-                             r00 * q[0, 2] + r01 * q[1, 2] + r02 * q[2, 2])
-            r10, r11, r12 = (r10 * q[0, 0] + r11 * q[1, 0] + r12 * q[2, 0], r10 * q[0, 1] + r11 * q[1, 1] + r12 * q[2, 1],
-                             r10 * q[0, 2] + r11 * q[1, 2] + r12 * q[2, 2])
-            r20, r21, r22 = (r20 * q[0, 0] + r21 * q[1, 0] + r22 * q[2, 0], r20 * q[0, 1] + r21 * q[1, 1] + r22 * q[2, 1],
-                             r20 * q[0, 2] + r21 * q[1, 2] + r22 * q[2, 2])
+            u, v, w = body_pos[b, 0], body_pos[b, 1], body_pos[b, 2]
+            p0, p1, p2 = (p0 + r00 * u + r01 * v + r02 * w, p1 + r10 * u + r11 * v + r12 * w,
+                          p2 + r20 * u + r21 * v + r22 * w)
+            if body_turns[b]:  # the parent frame times the body's fixed rotation
+                q00, q01, q02 = body_rot[b, 0, 0], body_rot[b, 0, 1], body_rot[b, 0, 2]
+                q10, q11, q12 = body_rot[b, 1, 0], body_rot[b, 1, 1], body_rot[b, 1, 2]
+                q20, q21, q22 = body_rot[b, 2, 0], body_rot[b, 2, 1], body_rot[b, 2, 2]
+                r00, r01, r02 = (r00 * q00 + r01 * q10 + r02 * q20, r00 * q01 + r01 * q11 + r02 * q21,
+                                 r00 * q02 + r01 * q12 + r02 * q22)
+                r10, r11, r12 = (r10 * q00 + r11 * q10 + r12 * q20, r10 * q01 + r11 * q11 + r12 * q21,
+                                 r10 * q02 + r11 * q12 + r12 * q22)
+                r20, r21, r22 = (r20 * q00 + r21 * q10 + r22 * q20, r20 * q01 + r21 * q11 + r22 * q21,
+                                 r20 * q02 + r21 * q12 + r22 * q22)
             j = body_joint[b]
             if j >= 0:  # times the joint's rotation about its axis (Rodrigues)
                 c, s = math.cos(joints[i, j]), math.sin(joints[i, j])
-                x, y, z = joint_axis[j, 0], joint_axis[j, 1], joint_axis[j, 2]
+                u, v, w = joint_axis[j, 0], joint_axis[j, 1], joint_axis[j, 2]
                 t = 1.0 - c
-                j00, j01, j02 = t * x * x + c, t * x * y - s * z, t * x * z + s * y
-                j10, j11, j12 = t * x * y + s * z, t * y * y + c, t * y * z - s * x
-                j20, j21, j22 = t * x * z - s * y, t * y * z + s * x, t * z * z + c
+                j00, j01, j02 = t * u * u + c, t * u * v - s * w, t * u * w + s * v
+                j10, j11, j12 = t * u * v + s * w, t * v * v + c, t * v * w - s * u
+                j20, j21, j22 = t * u * w - s * v, t * v * w + s * u, t * w * w + c
                 r00, r01, r02 = (r00 * j00 + r01 * j10 + r02 * j20, r00 * j01 + r01 * j11 + r02 * j21,
                                  r00 * j02 + r01 * j12 + r02 * j22)
                 r10, r11, r12 = (r10 * j00 + r11 * j10 + r12 * j20, r10 * j01 + r11 * j11 + r12 * j21,
                                  r10 * j02 + r11 * j12 + r12 * j22)
                 r20, r21, r22 = (r20 * j00 + r21 * j10 + r22 * j20, r20 * j01 + r21 * j11 + r22 * j21,
                                  r20 * j02 + r21 * j12 + r22 * j22)
-        for g in range(capsule_body.shape[0]):
-            if capsule_body[g] == b:
-                for e in range(2):
-                    x, y, z = capsule_ends[g, e, 0], capsule_ends[g, e, 1], capsule_ends[g, e, 2]
-                    capsules[i, g, e, 0] = p0 + r00 * x + r01 * y + r02 * z
-                    capsules[i, g, e, 1] = p1 + r10 * x + r11 * y + r12 * z
-                    capsules[i, g, e, 2] = p2 + r20 * x + r21 * y + r22 * z
-        for g in range(box_body.shape[0]):
-            if box_body[g] == b:
-                for k in range(4):  # the centre, then the axes (directions: not translated)
-                    x, y, z = box_frame[g, k, 0], box_frame[g, k, 1], box_frame[g, k, 2]
-                    o0, o1, o2 = (p0, p1, p2) if k == 0 else (0.0, 0.0, 0.0)
-                    boxes[i, g, k, 0] = o0 + r00 * x + r01 * y + r02 * z
-                    boxes[i, g, k, 1] = o1 + r10 * x + r11 * y + r12 * z
-                    boxes[i, g, k, 2] = o2 + r20 * x + r21 * y + r22 * z
+        while g < capsule_body.shape[0] and capsule_body[g] == b:
+            for e in range(2):
+                u, v, w = capsule_ends[g, e, 0], capsule_ends[g, e, 1], capsule_ends[g, e, 2]
+                capsules[i, g, e, 0] = p0 + r00 * u + r01 * v + r02 * w
+                capsules[i, g, e, 1] = p1 + r10 * u + r11 * v + r12 * w
+                capsules[i, g, e, 2] = p2 + r20 * u + r21 * v + r22 * w
+            g += 1
+        while x < box_body.shape[0] and box_body[x] == b:
+            for k in range(4):  # the centre, then the axes (directions: not translated)
+                u, v, w = box_frame[x, k, 0], box_frame[x, k, 1], box_frame[x, k, 2]
+                o0, o1, o2 = (p0, p1, p2) if k == 0 else (0.0, 0.0, 0.0)
+                boxes[i, x, k, 0] = o0 + r00 * u + r01 * v + r02 * w
+                boxes[i, x, k, 1] = o1 + r10 * u + r11 * v + r12 * w
+                boxes[i, x, k, 2] = o2 + r20 * u + r21 * v + r22 * w
+            x += 1
 
 
 def rotations(quat) -> np.ndarray:
@@ -319,34 +323,43 @@ def rotations(quat) -> np.ndarray:
 
 
 def arm_constants(arm) -> tuple:
-    """The arm's kinematics as :func:`pose_arm` takes it (float64 / int64 arrays): body
-    offsets and fixed rotations, joint of each body (-1: none) and joint axes, capsule and
-    box bodies with their ends and frames in the body frame. ``arm``: a
-    :class:`mjx_multiarm.geometry.robot.ArmModel`."""
-    return (arm.body_pos.astype(np.float64), rotations(arm.body_quat), np.asarray(arm.body_joint, np.int64),
+    """The arm's kinematics as :func:`pose_arm` takes it (float64 / int64 / bool arrays): body
+    offsets, fixed rotations and whether each is one (not the identity), joint of each body
+    (-1: none) and joint axes, capsule and box bodies (in body order) with their ends and
+    frames in the body frame. ``arm``: a :class:`mjx_multiarm.geometry.robot.ArmModel`."""
+    if np.any(np.diff(arm.capsule_body) < 0) or np.any(np.diff(arm.box_body) < 0):
+        raise ValueError("arm_constants: the arm's capsules and boxes must be listed in body order")
+    turns = rotations(arm.body_quat)
+    return (arm.body_pos.astype(np.float64), turns, ~np.all(turns == np.eye(3), axis=(1, 2)), np.asarray(arm.body_joint, np.int64),
             arm.joint_axis.astype(np.float64), arm.capsule_body.astype(np.int64), arm.capsule_ends.astype(np.float64),
             arm.box_body.astype(np.int64), arm.box_frame.astype(np.float64))
 
 
 @_jit
 def _self_distance(i, capsules, boxes, centres, radii, radius, box_half, pairs, best):
-    """The smaller of ``best`` and the smallest distance over arm ``i``'s self pairs: the
-    pair of nearest centres first, then only the pairs whose sphere gap is below the
-    distance to beat."""
-    seed = -1
-    if best == np.inf:  # no bound yet
-        seed, seed_d2 = 0, np.inf
-        for p in range(pairs.shape[0]):
-            d2 = centre_distance2(centres, i, pairs[p, 0], i, pairs[p, 1])
-            if d2 < seed_d2:
-                seed, seed_d2 = p, d2
-        best = geom_distance(capsules, boxes, i, pairs[seed, 0], i, pairs[seed, 1], radius, box_half)
+    """The smaller of ``best`` and the smallest distance over arm ``i``'s self pairs,
+    measuring only the pairs whose sphere gap is below the distance to beat (with no bound
+    yet, the first pair is measured: :func:`nearest_first` orders them)."""
     for p in range(pairs.shape[0]):
         a, b = pairs[p, 0], pairs[p, 1]
         reach = max(best, 0.0) + radii[i, a] + radii[i, b]
-        if p != seed and centre_distance2(centres, i, a, i, b) < reach * reach:
+        if centre_distance2(centres, i, a, i, b) < reach * reach:
             best = min(best, geom_distance(capsules, boxes, i, a, i, b, radius, box_half))
     return best
+
+
+def nearest_first(arm, radius, box_half, pairs, joints) -> np.ndarray:
+    """``pairs`` [n, 2] (geom pairs within one arm) ordered by their mean distance over the
+    arm's configurations ``joints`` [k, 6], nearest first: the kernel's self check measures
+    the first pair and prunes the others by it, so the first should usually be close."""
+    k = len(joints)
+    capsules, boxes = np.empty((k, len(radius), 2, 3)), np.empty((k, len(box_half), 4, 3))
+    base_pos, base_rot = np.zeros((k, 3)), np.tile(np.eye(3), (k, 1, 1))
+    joints = np.asarray(joints, np.float64)
+    for i in range(k):
+        pose_arm(base_pos, base_rot, joints, i, arm, capsules, boxes)
+    mean = [np.mean([geom_distance(capsules, boxes, i, a, i, b, radius, box_half) for i in range(k)]) for a, b in pairs]
+    return pairs[np.argsort(mean, kind="stable")]
 
 
 @_jit
