@@ -384,3 +384,18 @@ def test_verdicts_match_the_recorded_reference(kernel, contacts_only, monkeypatc
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert result["differ_from_reference"] == 0 and result.get("differ_from_checker", 0) == 0, result
     assert 0.2 < result["collided_arms"] / result["arms"] < 0.8
+
+
+def test_self_pairs_nearest_first_is_an_ordering_by_mean_distance():
+    """The numba kernel's self pairs: the same pairs, nearest first over the sampled configurations."""
+    scene = build_scene(1)
+    arm, pairs = scene.arm, scene.pairs.self_pairs.astype(np.int64)
+    radius, box_half = arm.capsule_radius.astype(np.float64), arm.box_half.astype(np.float64)
+    joints = np.random.default_rng(3).uniform(arm.joint_range[:, 0], arm.joint_range[:, 1], (16, 6))
+    ordered = compiled_kernel.nearest_first(compiled_kernel.arm_constants(arm), radius, box_half, pairs, joints)
+    assert sorted(map(tuple, ordered)) == sorted(map(tuple, pairs))
+    frames = forward_kinematics(arm, np.zeros(3), np.array([1.0, 0, 0, 0]), joints)
+    capsules, boxes = np.asarray(frames.capsules, np.float64), np.asarray(frames.boxes, np.float64)
+    mean = [np.mean([compiled_kernel.geom_distance(capsules, boxes, i, a, i, b, radius, box_half) for i in range(16)])
+            for a, b in ordered]
+    assert np.all(np.diff(mean) >= -1e-5)  # the kernel's own float64 poses against float32 ones

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import xml.etree.ElementTree as ET
 
 import jax.numpy as jnp
@@ -174,6 +175,14 @@ def test_compiled_fk_matches_the_jax_fk():
         compiled.pose_arm(pos, rot, q, i, constants, capsules, boxes)
     np.testing.assert_allclose(capsules, frames.capsules, atol=2e-5)
     np.testing.assert_allclose(boxes, frames.boxes, atol=2e-5)
+
+
+def test_compiled_constants_need_geoms_in_body_order():
+    """The compiled kinematics places each body's geoms as its chain reaches the body."""
+    arm = load_arm()
+    shuffled = dataclasses.replace(arm, capsule_body=arm.capsule_body[::-1].copy())
+    with pytest.raises(ValueError, match="body order"):
+        compiled.arm_constants(shuffled)
 
 
 @pytest.mark.parametrize("shape", [(6,), (2, 3, 6)])
