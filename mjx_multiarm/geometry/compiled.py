@@ -254,62 +254,59 @@ def quat_rotation(quat, i, rot):
 
 
 @_jit
+def _times(r, q):
+    """The product of two 3x3 matrices held as row-major 9-tuples."""
+    return (r[0] * q[0] + r[1] * q[3] + r[2] * q[6], r[0] * q[1] + r[1] * q[4] + r[2] * q[7],
+            r[0] * q[2] + r[1] * q[5] + r[2] * q[8],
+            r[3] * q[0] + r[4] * q[3] + r[5] * q[6], r[3] * q[1] + r[4] * q[4] + r[5] * q[7],
+            r[3] * q[2] + r[4] * q[5] + r[5] * q[8],
+            r[6] * q[0] + r[7] * q[3] + r[8] * q[6], r[6] * q[1] + r[7] * q[4] + r[8] * q[7],
+            r[6] * q[2] + r[7] * q[5] + r[8] * q[8])
+
+
+@_jit
+def _placed(p, r, u, v, w):
+    """The point (u, v, w) of the frame (p, r) (r a row-major 9-tuple) in world coordinates."""
+    return p[0] + r[0] * u + r[1] * v + r[2] * w, p[1] + r[3] * u + r[4] * v + r[5] * w, p[2] + r[6] * u + r[7] * v + r[8] * w
+
+
+@_jit
 def pose_arm(base_pos, base_rot, joints, i, arm, capsules, boxes):
     """Forward kinematics of arm ``i``: its world capsule ends ``capsules[i]`` [ncap, 2, 3] and
     box frames ``boxes[i]`` [nbox, 4, 3] (centre, unit axes), from its base ``base_pos[i]``,
     ``base_rot[i]`` and ``joints[i]``, all float64. ``arm``: the tuple of :func:`arm_constants`.
 
-    The body frames are chained in local scalars (registers, not arrays that the compiler
-    must assume alias the outputs), and each body's geoms are placed as the chain reaches it."""
+    The body frames are chained in tuples (registers, not arrays that the compiler must
+    assume alias the outputs), and each body's geoms are placed as the chain reaches it."""
     body_pos, body_rot, body_turns, body_joint, joint_axis, capsule_body, capsule_ends, box_body, box_frame = arm
     g = x = 0  # the next capsule and box to place (ordered by body)
-    p0, p1, p2 = base_pos[i, 0], base_pos[i, 1], base_pos[i, 2]
-    r00, r01, r02 = base_rot[i, 0, 0], base_rot[i, 0, 1], base_rot[i, 0, 2]
-    r10, r11, r12 = base_rot[i, 1, 0], base_rot[i, 1, 1], base_rot[i, 1, 2]
-    r20, r21, r22 = base_rot[i, 2, 0], base_rot[i, 2, 1], base_rot[i, 2, 2]
+    p = (base_pos[i, 0], base_pos[i, 1], base_pos[i, 2])
+    r = (base_rot[i, 0, 0], base_rot[i, 0, 1], base_rot[i, 0, 2], base_rot[i, 1, 0], base_rot[i, 1, 1],
+         base_rot[i, 1, 2], base_rot[i, 2, 0], base_rot[i, 2, 1], base_rot[i, 2, 2])
     for b in range(body_pos.shape[0]):
         if b > 0:  # body 0 is the base frame itself
-            u, v, w = body_pos[b, 0], body_pos[b, 1], body_pos[b, 2]
-            p0, p1, p2 = (p0 + r00 * u + r01 * v + r02 * w, p1 + r10 * u + r11 * v + r12 * w,
-                          p2 + r20 * u + r21 * v + r22 * w)
+            p = _placed(p, r, body_pos[b, 0], body_pos[b, 1], body_pos[b, 2])
             if body_turns[b]:  # the parent frame times the body's fixed rotation
-                q00, q01, q02 = body_rot[b, 0, 0], body_rot[b, 0, 1], body_rot[b, 0, 2]
-                q10, q11, q12 = body_rot[b, 1, 0], body_rot[b, 1, 1], body_rot[b, 1, 2]
-                q20, q21, q22 = body_rot[b, 2, 0], body_rot[b, 2, 1], body_rot[b, 2, 2]
-                r00, r01, r02 = (r00 * q00 + r01 * q10 + r02 * q20, r00 * q01 + r01 * q11 + r02 * q21,
-                                 r00 * q02 + r01 * q12 + r02 * q22)
-                r10, r11, r12 = (r10 * q00 + r11 * q10 + r12 * q20, r10 * q01 + r11 * q11 + r12 * q21,
-                                 r10 * q02 + r11 * q12 + r12 * q22)
-                r20, r21, r22 = (r20 * q00 + r21 * q10 + r22 * q20, r20 * q01 + r21 * q11 + r22 * q21,
-                                 r20 * q02 + r21 * q12 + r22 * q22)
+                r = _times(r, (body_rot[b, 0, 0], body_rot[b, 0, 1], body_rot[b, 0, 2], body_rot[b, 1, 0],
+                               body_rot[b, 1, 1], body_rot[b, 1, 2], body_rot[b, 2, 0], body_rot[b, 2, 1],
+                               body_rot[b, 2, 2]))
             j = body_joint[b]
             if j >= 0:  # times the joint's rotation about its axis (Rodrigues)
                 c, s = math.cos(joints[i, j]), math.sin(joints[i, j])
                 u, v, w = joint_axis[j, 0], joint_axis[j, 1], joint_axis[j, 2]
                 t = 1.0 - c
-                j00, j01, j02 = t * u * u + c, t * u * v - s * w, t * u * w + s * v
-                j10, j11, j12 = t * u * v + s * w, t * v * v + c, t * v * w - s * u
-                j20, j21, j22 = t * u * w - s * v, t * v * w + s * u, t * w * w + c
-                r00, r01, r02 = (r00 * j00 + r01 * j10 + r02 * j20, r00 * j01 + r01 * j11 + r02 * j21,
-                                 r00 * j02 + r01 * j12 + r02 * j22)
-                r10, r11, r12 = (r10 * j00 + r11 * j10 + r12 * j20, r10 * j01 + r11 * j11 + r12 * j21,
-                                 r10 * j02 + r11 * j12 + r12 * j22)
-                r20, r21, r22 = (r20 * j00 + r21 * j10 + r22 * j20, r20 * j01 + r21 * j11 + r22 * j21,
-                                 r20 * j02 + r21 * j12 + r22 * j22)
+                r = _times(r, (t * u * u + c, t * u * v - s * w, t * u * w + s * v,
+                               t * u * v + s * w, t * v * v + c, t * v * w - s * u,
+                               t * u * w - s * v, t * v * w + s * u, t * w * w + c))
         while g < capsule_body.shape[0] and capsule_body[g] == b:
             for e in range(2):
-                u, v, w = capsule_ends[g, e, 0], capsule_ends[g, e, 1], capsule_ends[g, e, 2]
-                capsules[i, g, e, 0] = p0 + r00 * u + r01 * v + r02 * w
-                capsules[i, g, e, 1] = p1 + r10 * u + r11 * v + r12 * w
-                capsules[i, g, e, 2] = p2 + r20 * u + r21 * v + r22 * w
+                capsules[i, g, e, 0], capsules[i, g, e, 1], capsules[i, g, e, 2] = _placed(
+                    p, r, capsule_ends[g, e, 0], capsule_ends[g, e, 1], capsule_ends[g, e, 2])
             g += 1
         while x < box_body.shape[0] and box_body[x] == b:
             for k in range(4):  # the centre, then the axes (directions: not translated)
-                u, v, w = box_frame[x, k, 0], box_frame[x, k, 1], box_frame[x, k, 2]
-                o0, o1, o2 = (p0, p1, p2) if k == 0 else (0.0, 0.0, 0.0)
-                boxes[i, x, k, 0] = o0 + r00 * u + r01 * v + r02 * w
-                boxes[i, x, k, 1] = o1 + r10 * u + r11 * v + r12 * w
-                boxes[i, x, k, 2] = o2 + r20 * u + r21 * v + r22 * w
+                boxes[i, x, k, 0], boxes[i, x, k, 1], boxes[i, x, k, 2] = _placed(
+                    p if k == 0 else (0.0, 0.0, 0.0), r, box_frame[x, k, 0], box_frame[x, k, 1], box_frame[x, k, 2])
             x += 1
 
 
