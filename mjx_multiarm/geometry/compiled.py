@@ -157,12 +157,14 @@ def box_box_distance(boxes, i, x, j, y, box_half):
     ar = ((abs(r[0][0]) + 1e-6, abs(r[0][1]) + 1e-6, abs(r[0][2]) + 1e-6),
           (abs(r[1][0]) + 1e-6, abs(r[1][1]) + 1e-6, abs(r[1][2]) + 1e-6),
           (abs(r[2][0]) + 1e-6, abs(r[2][1]) + 1e-6, abs(r[2][2]) + 1e-6))
+    c = (-(t[0] * r[0][0] + t[1] * r[1][0] + t[2] * r[2][0]),  # A's centre in B's frame
+         -(t[0] * r[0][1] + t[1] * r[1][1] + t[2] * r[2][1]),
+         -(t[0] * r[0][2] + t[1] * r[1][2] + t[2] * r[2][2]))
     gap = -np.inf
     for a in range(3):
         gap = max(gap, abs(t[a]) - ha[a] - (hb[0] * ar[a][0] + hb[1] * ar[a][1] + hb[2] * ar[a][2]))
     for b in range(3):
-        gap = max(gap, abs(t[0] * r[0][b] + t[1] * r[1][b] + t[2] * r[2][b]) - hb[b]
-                  - (ha[0] * ar[0][b] + ha[1] * ar[1][b] + ha[2] * ar[2][b]))
+        gap = max(gap, abs(c[b]) - hb[b] - (ha[0] * ar[0][b] + ha[1] * ar[1][b] + ha[2] * ar[2][b]))
     for a in range(3):
         a1, a2 = (a + 1) % 3, (a + 2) % 3
         for b in range(3):
@@ -172,9 +174,6 @@ def box_box_distance(boxes, i, x, j, y, box_half):
             gap = max(gap, (centre - extent) / (math.sqrt(max(1.0 - r[a][b] ** 2, 0.0)) + 1e-6))
     if gap < 0.0:
         return gap
-    c = (-(t[0] * r[0][0] + t[1] * r[1][0] + t[2] * r[2][0]),  # A's centre in B's frame
-         -(t[0] * r[0][1] + t[1] * r[1][1] + t[2] * r[2][1]),
-         -(t[0] * r[0][2] + t[1] * r[1][2] + t[2] * r[2][2]))
     nearest = np.inf
     for k in range(3):  # A's edges along axis k, in B's frame
         k1, k2 = (k + 1) % 3, (k + 2) % 3
