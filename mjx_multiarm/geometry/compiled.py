@@ -70,8 +70,9 @@ def segment_distance(capsules, i, ga, j, gb):
 
 @_jit
 def _excess(x, h):
-    """How far x lies outside [-h, h] (signed, 0 inside)."""
-    return x - h if x > h else (x + h if x < -h else 0.0)
+    """How far x lies outside [-h, h] (signed, 0 inside; h >= 0). Branch-free: this runs
+    eight times per segment-box distance, where a branch on the sign is a coin toss."""
+    return max(x - h, 0.0) + min(x + h, 0.0)
 
 
 @_jit
@@ -359,100 +360,102 @@ def nearest_first(arm, radius, box_half, pairs, joints) -> np.ndarray:
 
 
 @_jit
-def _near_geoms(centres, radii, i, reach, lo, hi, j, out):
-    """The geoms of arm ``i`` whose sphere comes within ``reach`` of arm ``j``'s box
-    [lo[j], hi[j]]; their count, indices written to ``out``."""
-    count = 0
-    for g in range(radii.shape[1]):
-        e = reach + radii[i, g]
-        near = True
-        for m in range(3):
-            near = near and centres[i, g, m] + e >= lo[j, m] and centres[i, g, m] - e <= hi[j, m]
-        if near:
-            out[count] = g
-            count += 1
-    return count
-
-
-@_jit
-def _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_half, mask, best, near_i, near_j):
-    """Lower ``best[i]`` and ``best[j]`` to the distance of arms i and j where it is smaller.
+def _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_half, mask, bi, bj, near_i, near_j,
+                  keys_i, keys_j):
+    """Arm i's and arm j's bests ``bi``, ``bj``, each lowered to the two arms' distance where that is smaller.
 
     A geom pair is measured only when its sphere gap is below the larger of the two arms'
-    current bests: a pair beyond it lowers neither. While one of them has none, the pair of
-    each arm's geom nearest the other arm's box is measured first, and its distance bounds
-    which geoms can take part at all.
+    current bests: a pair beyond it lowers neither. One pass measures each geom's centre
+    against the other arm's box [lo, hi]; while one of the arms has no best yet, the pair of
+    each arm's geom nearest the other arm's box is measured first, and that distance bounds
+    which geoms (those whose sphere comes within it of the other arm's box) take part.
     """
     ga = gb = -1
-    if max(best[i], best[j]) == np.inf:
-        da = db = np.inf
-        for g in range(radii.shape[1]):  # each arm's geom nearest the other arm's box
-            ea = eb = 0.0
-            for m in range(3):
-                ea += max(lo[j, m] - centres[i, g, m], centres[i, g, m] - hi[j, m], 0.0) ** 2
-                eb += max(lo[i, m] - centres[j, g, m], centres[j, g, m] - hi[i, m], 0.0) ** 2
-            if ea < da:
-                ga, da = g, ea
-            if eb < db:
-                gb, db = g, eb
-        if mask[ga, gb]:
-            d = geom_distance(capsules, boxes, i, ga, j, gb, radius, box_half)
-            best[i], best[j] = min(best[i], d), min(best[j], d)
-    reach = max(best[i], best[j], 0.0)
-    ni = _near_geoms(centres, radii, i, reach, lo, hi, j, near_i)
-    nj = _near_geoms(centres, radii, j, reach, lo, hi, i, near_j)
+    da = db = np.inf
+    for g in range(radii.shape[1]):  # squared distances of the geom centres to the other arm's box
+        ea = eb = 0.0
+        for m in range(3):
+            ea += max(lo[j, m] - centres[i, g, m], centres[i, g, m] - hi[j, m], 0.0) ** 2
+            eb += max(lo[i, m] - centres[j, g, m], centres[j, g, m] - hi[i, m], 0.0) ** 2
+        keys_i[g], keys_j[g] = ea, eb
+        if ea < da:
+            ga, da = g, ea
+        if eb < db:
+            gb, db = g, eb
+    if max(bi, bj) == np.inf and mask[ga, gb]:
+        d = geom_distance(capsules, boxes, i, ga, j, gb, radius, box_half)
+        bi, bj = min(bi, d), min(bj, d)
+    else:
+        ga = gb = -1  # no pair measured yet
+    reach = max(bi, bj, 0.0)
+    ni = nj = 0
+    for g in range(radii.shape[1]):
+        if keys_i[g] <= (reach + radii[i, g]) ** 2:
+            near_i[ni] = g
+            ni += 1
+        if keys_j[g] <= (reach + radii[j, g]) ** 2:
+            near_j[nj] = g
+            nj += 1
     for x in range(ni):
         a = near_i[x]
+        ax, ay, az, ra = centres[i, a, 0], centres[i, a, 1], centres[i, a, 2], radii[i, a]
         for y in range(nj):
             b = near_j[y]
-            if mask[a, b] and (a != ga or b != gb):
-                limit = max(best[i], best[j], 0.0) + radii[i, a] + radii[j, b]
-                if centre_distance2(centres, i, a, j, b) < limit * limit:
-                    d = geom_distance(capsules, boxes, i, a, j, b, radius, box_half)
-                    best[i], best[j] = min(best[i], d), min(best[j], d)
+            limit = max(bi, bj, 0.0) + ra + radii[j, b]
+            dx, dy, dz = ax - centres[j, b, 0], ay - centres[j, b, 1], az - centres[j, b, 2]
+            if dx * dx + dy * dy + dz * dz < limit * limit and mask[a, b] and (a != ga or b != gb):
+                d = geom_distance(capsules, boxes, i, a, j, b, radius, box_half)
+                bi, bj = min(bi, d), min(bj, d)
+    return bi, bj
 
 
 @_jit
-def _scene_contacts(capsules, boxes, active, radius, box_half, self_pairs, mask, ground, between, within, low,
-                    centres, radii, lo, hi, near_i, near_j, gaps, first, second):
-    """Lower ``between``, ``within`` and ``low`` [A] (per arm) to one posed scene's smallest
-    distances where they are smaller; inactive arms are left as they are. The arguments
-    after them are work arrays. Pairs that cannot lower a value are skipped, so a caller
-    that wants the minimum over several configurations passes the running minimum."""
+def _scene_contacts(capsules, boxes, active, radius, box_half, self_pairs, mask, ground, best,
+                    centres, radii, lo, hi, near_i, near_j, keys_i, keys_j, gaps, first, second):
+    """Lower ``best`` [3, A] (per arm: between arms, within the arm, to the ground) to one
+    posed scene's smallest distances where they are smaller; inactive arms are left as they
+    are. The arguments after it are work arrays. Pairs that cannot lower a value are
+    skipped, so a caller that wants the minimum over several configurations passes the
+    running minimum."""
     num_arms = capsules.shape[0]
     pairs = 0
     for i in range(num_arms):
         if not active[i]:
             continue
         bounding_spheres(capsules, boxes, i, radius, box_half, centres, radii)
-        for m in range(3):
-            lo[i, m], hi[i, m] = np.inf, -np.inf
+        for m in range(3):  # the arm's box, in locals: the stores cannot alias the loads
+            low, high = np.inf, -np.inf
             for g in range(radii.shape[1]):
-                lo[i, m] = min(lo[i, m], centres[i, g, m] - radii[i, g])
-                hi[i, m] = max(hi[i, m], centres[i, g, m] + radii[i, g])
-        low[i] = min(low[i], ground_distance(capsules, boxes, i, radius, box_half, ground))
+                low, high = min(low, centres[i, g, m] - radii[i, g]), max(high, centres[i, g, m] + radii[i, g])
+            lo[i, m], hi[i, m] = low, high
+        best[2, i] = min(best[2, i], ground_distance(capsules, boxes, i, radius, box_half, ground))
         if self_pairs.shape[0]:
-            within[i] = _self_distance(i, capsules, boxes, centres, radii, radius, box_half, self_pairs, within[i])
-        for j in range(i):  # arm pairs, keyed by the squared gap of the arms' boxes
+            best[1, i] = _self_distance(i, capsules, boxes, centres, radii, radius, box_half, self_pairs, best[1, i])
+        for j in range(i):  # arm pairs, kept in order of the squared gap of the arms' boxes
             if active[j]:
                 gap2 = 0.0
                 for m in range(3):
                     gap2 += max(lo[j, m] - hi[i, m], lo[i, m] - hi[j, m], 0.0) ** 2
-                first[pairs], second[pairs], gaps[pairs] = j, i, gap2
+                o = pairs
+                while o > 0 and gaps[o - 1] > gap2:  # insertion: no array allocated per scene
+                    first[o], second[o], gaps[o] = first[o - 1], second[o - 1], gaps[o - 1]
+                    o -= 1
+                first[o], second[o], gaps[o] = j, i, gap2
                 pairs += 1
-    for o in np.argsort(gaps[:pairs]):  # nearest first: every arm soon has a finite distance to beat
+    for o in range(pairs):  # nearest first: every arm soon has a finite distance to beat
         i, j = first[o], second[o]
-        bound = max(between[i], between[j])
+        bound = max(best[0, i], best[0, j])
         if gaps[o] > 0.0 and gaps[o] >= max(bound, 0.0) ** 2:
             continue
-        _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_half, mask, between, near_i, near_j)
+        best[0, i], best[0, j] = _between_pair(i, j, capsules, boxes, centres, radii, lo, hi, radius, box_half, mask,
+                                               best[0, i], best[0, j], near_i, near_j, keys_i, keys_j)
 
 
 @_jit
 def _work_arrays(num_arms, ngeom):
     """The work arrays of :func:`_scene_contacts` after its outputs (allocated once per chunk of scenes)."""
     return (np.empty((num_arms, ngeom, 3)), np.empty((num_arms, ngeom)), np.empty((num_arms, 3)),
-            np.empty((num_arms, 3)), np.empty(ngeom, np.int64), np.empty(ngeom, np.int64),
+            np.empty((num_arms, 3)), np.empty(ngeom, np.int64), np.empty(ngeom, np.int64), np.empty(ngeom), np.empty(ngeom),
             np.empty(num_arms * num_arms), np.empty(num_arms * num_arms, np.int64),
             np.empty(num_arms * num_arms, np.int64))
 
@@ -470,8 +473,8 @@ def _batch(capsules, boxes, active, radius, box_half, self_pairs, mask, ground, 
             best[:] = max_distance  # pairs that cannot come within it are skipped
             for k in range(steps):  # the running minimum over the configurations prunes the later ones
                 posed_capsules[:], posed_boxes[:] = capsules[s, k], boxes[s, k]
-                _scene_contacts(posed_capsules, posed_boxes, active[s], radius, box_half, self_pairs, mask, ground,
-                                best[0], best[1], best[2], *work)
+                _scene_contacts(posed_capsules, posed_boxes, active[s], radius, box_half, self_pairs, mask, ground, best,
+                                *work)
             out[:, s] = best
     return out[0], out[1], out[2]
 
@@ -487,20 +490,24 @@ def _batch_joints(base_pos, base_quat, joints, active, arm, radius, box_half, se
         capsules, boxes = np.empty((num_arms, ncap, 2, 3)), np.empty((num_arms, nbox, 4, 3))
         place, turn, config = np.empty((num_arms, 3)), np.empty((num_arms, 3, 3)), np.empty((num_arms, joints.shape[3]))
         work = _work_arrays(num_arms, ncap + nbox)
-        for s in range(c * n // chunks, (c + 1) * n // chunks):
+        for s in range(c * n // chunks, (c + 1) * n // chunks):  # element copies: no array views per scene
             best[:] = max_distance  # pairs that cannot come within it are skipped
+            quat = base_quat[s]
             for i in range(num_arms):
                 if active[s, i]:  # padded slots may hold no valid quaternion
-                    place[i] = base_pos[s, i]
-                    quat_rotation(base_quat[s], i, turn)
+                    for m in range(3):
+                        place[i, m] = base_pos[s, i, m]
+                    quat_rotation(quat, i, turn)
             for k in range(steps):
                 for i in range(num_arms):
                     if active[s, i]:
-                        config[i] = joints[s, k, i]
+                        for m in range(config.shape[1]):
+                            config[i, m] = joints[s, k, i, m]
                         pose_arm(place, turn, config, i, arm, capsules, boxes)
-                _scene_contacts(capsules, boxes, active[s], radius, box_half, self_pairs, mask, ground,
-                                best[0], best[1], best[2], *work)
-            out[:, s] = best
+                _scene_contacts(capsules, boxes, active[s], radius, box_half, self_pairs, mask, ground, best, *work)
+            for q in range(3):
+                for i in range(num_arms):
+                    out[q, s, i] = best[q, i]
     return out[0], out[1], out[2]
 
 
