@@ -11,7 +11,9 @@ transitions to the actor loss (:func:`expert_bc_loss`; ``expert_bc_filter=False`
 filter). ``bc_start`` = N > 0 gives a
 behaviour-cloned start: for the first N updates the actor step regresses the mean action
 onto the batch's expert actions (the critics learn as usual meanwhile, so SAC takes over
-from a cloned actor with a critic of it). ``policy_average > 0`` keeps a Polyak
+from a cloned actor with a critic of it). ``actor_freeze`` = N > 0 leaves the actor and its
+optimizer unchanged for the first N updates while the critics learn (the critic warm-up of
+a fine-tune, :mod:`train.finetune`). ``policy_average > 0`` keeps a Polyak
 average of the actor's parameters (``Agent.average_actor``), the policy that evaluation and
 exported policy files use; 0 deploys the latest actor, as the original.
 """
@@ -57,6 +59,8 @@ class SACConfig:
     inputs: InputFeatures = InputFeatures()
     bc_start: int = option(0, "the first N updates train the actor by cloning the batch's expert transitions (the critics "
                               "learn meanwhile), then SAC takes over (0: none)")
+    actor_freeze: int = option(0, "the first N updates leave the actor as it is while the critics learn (the critic warm-up "
+                                  "of a fine-tune, --init; 0: none)")
 
     def __post_init__(self):
         for name in ("actor_lr", "critic_lr", "alpha", "alpha_lr", "bc_lr"):
@@ -70,8 +74,9 @@ class SACConfig:
             raise ValueError(f"SACConfig.expert_bc must be >= 0, got {self.expert_bc}")
         if not 0 <= self.policy_average <= 1:
             raise ValueError(f"SACConfig.policy_average must be in [0, 1], got {self.policy_average}")
-        if self.bc_start < 0:
-            raise ValueError(f"SACConfig.bc_start must be >= 0, got {self.bc_start}")
+        for name in ("bc_start", "actor_freeze"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"SACConfig.{name} must be >= 0, got {getattr(self, name)}")
 
 
 @struct.dataclass
@@ -116,6 +121,17 @@ def create_agent(key, config: SACConfig = SACConfig()) -> Agent:
     log_alpha = jnp.asarray(math.log(config.alpha), jnp.float32)
     return Agent(actor, actor, critic, critic, actor_opt.init(actor), critic_opt.init(critic), log_alpha,
                  alpha_opt.init(log_alpha), jnp.zeros((), jnp.int32), actor_def, critic_def)
+
+
+def agent_from_parameters(key, config: SACConfig, actor: nnx.State, critic: nnx.State | None = None) -> Agent:
+    """An agent whose actor (and its average) start from ``actor`` and whose critics (and
+    target critics) start from ``critic`` (fresh where None), with fresh optimizers: the
+    start of a fine-tune."""
+    agent = create_agent(key, config)
+    critic = agent.critic if critic is None else critic
+    actor_opt, critic_opt, _ = _optimizers(config)
+    return agent.replace(actor=actor, average_actor=actor, critic=critic, target_critic=critic, actor_opt=actor_opt.init(actor),
+                         critic_opt=critic_opt.init(critic))
 
 
 def td_target(agent: Agent, batch: Transitions, key, config: SACConfig = SACConfig(), std_scale=1.0) -> jnp.ndarray:
@@ -183,6 +199,10 @@ def sac_update(agent: Agent, batch: Transitions, key, config: SACConfig = SACCon
     a_updates, actor_state = actor_opt.update(a_grads, agent.actor_opt, agent.actor)
     critic = optax.apply_updates(agent.critic, c_updates)
     actor = optax.apply_updates(agent.actor, a_updates)
+    if config.actor_freeze:  # critic warm-up: the actor and its optimizer stay as they are
+        moves = agent.updates >= config.actor_freeze
+        actor, actor_state = jax.tree.map(lambda new, old: jnp.where(moves, new, old), (actor, actor_state),
+                                          (agent.actor, agent.actor_opt))
     log_alpha, alpha_state = agent.log_alpha, agent.alpha_opt
     if config.learn_alpha:
         entropy_gap = jax.lax.stop_gradient(jnp.mean(log_prob) + config.target_entropy)

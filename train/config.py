@@ -80,6 +80,8 @@ class RunConfig:
     """Everything that defines a training run (defaults: the ``cpu`` preset)."""
 
     seed: int = option(0, "seed of the networks, environments and generated tasks")
+    init: str | None = option(None, "fine-tune: start from this policy file or run directory (the actor, and the critics if "
+                                    "the file carries them), curriculum at the parent's level; see train.finetune")
     env: EnvConfig = EnvConfig(max_steps=200)
     train: TrainConfig = TrainConfig(hindsight=1, sac=SACConfig(expert_bc=1.0, policy_average=5e-4))
     data: DataConfig = DataConfig()

@@ -11,7 +11,7 @@ import numpy as np
 from mjx_multiarm.env.reaching import EVAL_TOLERANCE, ReachingEnv
 from mjx_multiarm.env.wrappers import TaskBank
 from mjx_multiarm.expert.planner import PlannerConfig
-from mjx_multiarm.expert.precompute import precompute
+from mjx_multiarm.expert.precompute import file_digest, precompute
 from mjx_multiarm.expert.store import ExpertStore
 from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_dataset
@@ -52,6 +52,17 @@ def heldout_subset(tasks: Tasks, limit: int) -> Tasks:
     return take(tasks, np.sort(rows))
 
 
+def _check_experts_fit(store: ExpertStore, tasks_path: pathlib.Path, log) -> None:
+    """Raise ValueError if the expert file records that it was planned for another task file
+    than ``tasks_path`` (task ids repeat across files made with the same seed)."""
+    planned_for = store.metadata.get("precompute", {}).get("tasks")
+    if planned_for is None:
+        log(f"warning: {store.path} records no task file checksum; its experts are trusted to be those of {tasks_path}")
+    elif planned_for != file_digest(tasks_path):
+        raise ValueError(f"{store.path} was planned for another task file ({store.metadata.get('tasks_file', 'unrecorded')}), "
+                         f"not {tasks_path}: plan its experts with python -m mjx_multiarm.expert --tasks {tasks_path} --out FILE")
+
+
 def prepare(config: RunConfig, run_dir: pathlib.Path, workers: int, log=print) -> RunData:
     """Tasks, experts (planned into ``run_dir`` where the configuration names no file),
     environments and task banks of a run; files already in ``run_dir`` are reused, so an
@@ -86,6 +97,8 @@ def prepare(config: RunConfig, run_dir: pathlib.Path, workers: int, log=print) -
         if not experts.exists():
             log(f"planning experts for {tasks.num_tasks} tasks ({workers} processes)...")
             precompute(tasks_path, experts, PlannerConfig(time_limit=30.0), seed=config.seed, workers=workers)
-        demos = Demonstrations.from_store(ExpertStore(experts), bank, env, config.train.expert_steps)
+        store = ExpertStore(experts)
+        _check_experts_fit(store, tasks_path, log)
+        demos = Demonstrations.from_store(store, bank, env, config.train.expert_steps)
     heldout = heldout_subset(eval_tasks, config.budget.eval_limit)
     return RunData(env, eval_env, bank, TaskBank.from_tasks(eval_tasks, max_arms), TaskBank.from_tasks(heldout, max_arms), demos)

@@ -4,6 +4,7 @@
     python -m train.sac --preset paper --run-dir runs/paper
     python -m train.sac --arms 1-4 --minutes 60 --run-dir runs/four
     python -m train.sac --resume runs/four --minutes 120  # continue a killed or finished run exactly
+    python -m train.sac --preset team --init runs/four --tasks mine.npz --run-dir runs/mine   # fine-tune a trained policy
     python -m train.sac --tasks train.npz --experts train.experts --run-dir runs/big
     python -m train.sac --tasks train.npz --experts train.experts --task-limit 10000   # its first 10,000
     python -m train.sac --train.sac.gamma 0.98            # any field of the run configuration
@@ -40,7 +41,8 @@ import time
 from mjx_multiarm.options import add_flags, apply, overrides
 from train.config import PRESETS, RunConfig, behaviour_cloning, without_expert
 from train.curriculum import LEVELS
-from train.run import load_config, train
+from train.finetune import fine_tune_config, load_parent
+from train.run import TrainingStopped, load_config, train
 
 #: Shortcut flags: value -> the settings it stands for.
 SHORTCUTS = {
@@ -89,7 +91,10 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
         config = without_expert(config)
     if args.bc:
         config = behaviour_cloning(config)
-    return apply(config, {**shortcut_changes, **changes})
+    config = apply(config, {**shortcut_changes, **changes})
+    if config.init:
+        config = fine_tune_config(config, load_parent(config.init)[1], set(changes) | set(shortcut_changes))
+    return config
 
 
 class ProgressLine:
@@ -132,6 +137,12 @@ def main(argv=None) -> None:
                        progress=line.update, log=line.log)
     except (ValueError, FileNotFoundError) as error:
         sys.exit(f"error: {error}")
+    except TrainingStopped as stopped:
+        line.log(str(stopped))
+        return
+    except KeyboardInterrupt:
+        sys.exit(f"\ninterrupted: {run_dir} keeps what it had saved; --resume {run_dir} continues it (from the start, "
+                 "with the prepared tasks and experts, if it had no checkpoint yet)")
     summary = result.summary
     for team, row in sorted(summary["evaluation"]["by_team_size"].items()):
         print(f"{team} arm(s): success {row['success_rate']:.1%}  collision {row['collision_rate']:.1%}  timeout {row['timeout_rate']:.1%} "

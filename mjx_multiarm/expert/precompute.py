@@ -87,7 +87,8 @@ def _run_ray(jobs, config, seed, address) -> Iterator[tuple[int, ExpertTable]]:
         yield pending.pop(ready[0]), ray.get(ready[0])
 
 
-def _file_digest(path: pathlib.Path) -> str:
+def file_digest(path: str | os.PathLike) -> str:
+    """SHA-256 of a file's bytes (what an expert file records of its task file)."""
     digest = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
@@ -117,7 +118,7 @@ def precompute(
         raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
     tasks_path, out = pathlib.Path(tasks_path), pathlib.Path(out)
     tasks, _ = load_tasks(tasks_path)
-    record = {"tasks": _file_digest(tasks_path), "planner": dataclasses.asdict(config), "seed": seed, "chunk_size": chunk_size}
+    record = {"tasks": file_digest(tasks_path), "planner": dataclasses.asdict(config), "seed": seed, "chunk_size": chunk_size}
     partial = out.with_name(out.name + ".partial")
     partial.mkdir(parents=True, exist_ok=True)
     spec_file = partial / "spec.json"

@@ -1,4 +1,4 @@
-"""Trained policies as small standalone files (the actor only): save, load, validate.
+"""Trained policies as small standalone files: save, load, validate.
 
 A policy file is a NumPy ``.npz`` archive holding the actor's parameters (one array per
 parameter path, e.g. ``encoder/cell/ii/kernel``) and a ``__meta__`` entry: JSON with the
@@ -7,6 +7,10 @@ settings the policy was trained for (action scale, neighbour radius, ...), free-
 training provenance, and a SHA-256 over the parameters. Loading checks all of it, so a
 truncated or altered file, or one of another architecture, fails with a message that
 says what is wrong instead of producing a silently broken planner.
+
+Version 2 files may also carry the twin critics (parameters named ``critic:<path>``), what
+fine-tuning (``python -m train.sac --init FILE``) needs beside the actor; the planner reads
+only the actor. Version 1 files (the actor only) still load.
 """
 
 from __future__ import annotations
@@ -24,11 +28,13 @@ from flax import nnx
 
 from mjx_multiarm.env.observation import InputFeatures
 from mjx_multiarm.geometry.robot import NUM_JOINTS
-from models.networks import Actor
+from models.networks import Actor, TwinCritic
 
 FORMAT = "mjx-multiarm-policy"
-VERSION = 1
+VERSION = 2
+READABLE_VERSIONS = (1, 2)
 _META = "__meta__"
+_CRITIC = "critic:"
 
 
 def _name(path) -> str:
@@ -54,13 +60,22 @@ def _architecture(squash: bool, inputs: InputFeatures) -> dict[str, list[int]]:
     return {_name(path): list(value.shape) for path, value in nnx.to_flat_state(nnx.state(abstract, nnx.Param))}
 
 
+def _critic_architecture(inputs: InputFeatures) -> dict[str, list[int]]:
+    """Parameter shapes of a freshly built twin critic, named as in the file."""
+    abstract = nnx.eval_shape(lambda: TwinCritic(nnx.Rngs(0), inputs, NUM_JOINTS))
+    return {_CRITIC + _name(path): list(value.shape) for path, value in nnx.to_flat_state(nnx.state(abstract, nnx.Param))}
+
+
 def save_policy(path: str | os.PathLike, actor: nnx.State, squash: bool, env_settings: dict, provenance: dict | None = None,
-                inputs: InputFeatures = InputFeatures()) -> None:
+                inputs: InputFeatures = InputFeatures(), critic: nnx.State | None = None) -> None:
     """Write ``actor``'s parameters (an ``nnx.State`` of :class:`~models.networks.Actor`,
     built with ``squash`` and ``inputs``) to ``path`` atomically. ``env_settings``
     records what the policy expects of the environment (``action_scale`` [6],
-    ``neighbour_radius``, ``max_step`` [6])."""
+    ``neighbour_radius``, ``max_step`` [6]). ``critic``: the twin critics' parameters
+    (:class:`~models.networks.TwinCritic`), stored for fine-tuning."""
     arrays = _flat(jax.device_get(actor))
+    if critic is not None:
+        arrays |= {_CRITIC + name: value for name, value in _flat(jax.device_get(critic)).items()}
     meta = {"format": FORMAT, "version": VERSION, "squash": bool(squash), "inputs": dataclasses.asdict(inputs), "shapes": {k: list(v.shape) for k, v in arrays.items()},
             "sha256": _digest(arrays), "env": env_settings, "provenance": provenance or {}}
     path = pathlib.Path(path)
@@ -74,15 +89,21 @@ def save_policy(path: str | os.PathLike, actor: nnx.State, squash: bool, env_set
 
 
 class LoadedPolicy:
-    """A policy file's actor module (``actor``), its ``squash`` flag and metadata."""
+    """A policy file's actor module (``actor``), its ``squash`` flag, input features,
+    metadata, and the twin critics' parameters where the file carries them (``critic``,
+    an ``nnx.State`` of :class:`~models.networks.TwinCritic`, else None)."""
 
-    def __init__(self, actor: Actor, meta: dict):
-        self.actor, self.meta = actor, meta
+    def __init__(self, actor: Actor, meta: dict, inputs: InputFeatures = InputFeatures(), critic: nnx.State | None = None):
+        self.actor, self.meta, self.inputs, self.critic = actor, meta, inputs, critic
         self.squash = bool(meta["squash"])
 
     @property
     def env(self) -> dict:
         return self.meta["env"]
+
+    @property
+    def provenance(self) -> dict:
+        return self.meta.get("provenance", {})
 
 
 def load_policy(path: str | os.PathLike) -> LoadedPolicy:
@@ -105,8 +126,9 @@ def load_policy(path: str | os.PathLike) -> LoadedPolicy:
         meta = json.loads(contents.pop(_META).tobytes().decode())
     except (UnicodeDecodeError, json.JSONDecodeError) as error:
         raise ValueError(f"{path}: corrupt policy metadata ({error})") from error
-    if meta.get("format") != FORMAT or meta.get("version") != VERSION:
-        raise ValueError(f"{path}: format {meta.get('format')!r} version {meta.get('version')!r}, expected {FORMAT!r} version {VERSION}")
+    if meta.get("format") != FORMAT or meta.get("version") not in READABLE_VERSIONS:
+        raise ValueError(f"{path}: format {meta.get('format')!r} version {meta.get('version')!r}, expected {FORMAT!r} version "
+                         f"{' or '.join(map(str, READABLE_VERSIONS))}")
     if _digest(contents) != meta.get("sha256"):
         raise ValueError(f"{path}: parameter checksum mismatch (the file is corrupt or was modified)")
     try:  # files before the input options hold plain actors, files of one option "rotations"
@@ -114,6 +136,9 @@ def load_policy(path: str | os.PathLike) -> LoadedPolicy:
     except TypeError as error:
         raise ValueError(f"{path}: unknown input features {meta['inputs']} ({error})") from error
     expected = _architecture(bool(meta["squash"]), inputs)
+    has_critic = any(name.startswith(_CRITIC) for name in contents)
+    if has_critic:
+        expected |= _critic_architecture(inputs)
     for name, shape in expected.items():
         if name not in contents:
             raise ValueError(f"{path}: parameter {name} missing: the file holds another architecture")
@@ -125,6 +150,15 @@ def load_policy(path: str | os.PathLike) -> LoadedPolicy:
         raise ValueError(f"{path}: unexpected parameters {unexpected[:3]}: the file holds another architecture")
     actor = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), inputs, NUM_JOINTS, squash=bool(meta["squash"])))
     graphdef, state = nnx.split(actor)
-    flat = [(path_, nnx.Param(jax.numpy.asarray(contents[_name(path_)]))) for path_, _ in nnx.to_flat_state(state)]
-    return LoadedPolicy(nnx.merge(graphdef, nnx.from_flat_state(flat)), meta)
+    critic = None
+    if has_critic:
+        _, critic_state = nnx.split(nnx.eval_shape(lambda: TwinCritic(nnx.Rngs(0), inputs, NUM_JOINTS)))
+        critic = _filled(critic_state, contents, _CRITIC)
+    return LoadedPolicy(nnx.merge(graphdef, _filled(state, contents)), meta, inputs, critic)
+
+
+def _filled(abstract: nnx.State, contents: dict[str, np.ndarray], prefix: str = "") -> nnx.State:
+    """``abstract``'s parameters with the file's arrays (named ``prefix`` + path)."""
+    return nnx.from_flat_state([(path, nnx.Param(jax.numpy.asarray(contents[prefix + _name(path)])))
+                                for path, _ in nnx.to_flat_state(abstract)])
 
