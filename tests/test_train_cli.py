@@ -110,6 +110,9 @@ def test_preset_additions_give_way_to_the_ablations(flags, expert_bc, hindsight)
     (["--expert-share", "0.25", "--no-expert"], "expert_share samples expert transitions"),
     (["--bc-start", "100", "--no-expert"], "bc_start clones expert transitions"),
     (["--bc-start", "-1"], "bc_start must be >= 0"),
+    (["--actor-freeze", "-1"], "actor_freeze must be >= 0"),
+    (["--workers", "0"], "workers must be >= 1"),
+    (["--workers", "-2"], "workers must be >= 1"),
 ])
 def test_inconsistent_flags_fail_before_the_run_starts(tmp_path, flags, message):
     """The training and environment configurations' checks run before the run directory, tasks or experts exist."""

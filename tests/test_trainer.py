@@ -285,3 +285,38 @@ def test_prefill_replays_distinct_experts_into_the_expert_buffer(one_arm):
         assert np.asarray(trainer.demos.lengths).min() >= 4 and int(state.expert_steps) == 3 * 4  # cut at the 4-step episodes
     with pytest.raises(ValueError, match="cannot prefill 5"):
         trainer.prefill(trainer.init(jax.random.key(0)), 5)
+
+
+def test_shield_teacher_replaces_colliding_motions_in_its_share_of_the_environments(generated):
+    """shield_teacher=0.5: in the first half of the environments, every arm whose motion the
+    shield replaced executes the replacement (as an action) and is flagged; the other half
+    and the arms it let pass keep the policy's actions. An iteration stores the flagged arm
+    steps as expert transitions in the expert buffer of expert_share."""
+    from mjx_multiarm.env.shield import PROPOSED
+
+    tasks = take(generated, np.flatnonzero((generated.num_arms >= 2) & (generated.num_arms <= 4))[:48])
+    env = ReachingEnv(4, EnvConfig(max_steps=8, end_on_collision=False))
+    bank = TaskBank.from_tasks(tasks, 4)
+    config = TrainConfig(num_envs=48, rollout_steps=2, updates_per_iteration=1, batch_size=8, buffer_size=4096, warmup=10**6,
+                         expert=False, curriculum=False, shield_teacher=0.5)
+    trainer = Trainer(env, bank, None, config)
+    t = bank.tasks.replace(start_joints=bank.tasks.start_joints + 0.5 * (bank.tasks.goal_joints - bank.tasks.start_joints))
+    states = jax.vmap(lambda task: env.reset(None, task))(t)
+    drive = env.joint_deltas_to_actions(t.goal_joints - states.joints)  # full speed to the goal: some teams collide
+    actions, replaced = (np.asarray(x) for x in jax.jit(trainer._shielded)(states, drive))
+    executed, motion, _ = jax.vmap(env.shield)(t.base_pos, t.base_quat, states.joints,
+                                               env.next_joints(states.joints, drive, t.active), t.active)
+    teacher, active = slice(0, 24), np.asarray(t.active)
+    expected = (np.asarray(motion) != PROPOSED) & active
+    np.testing.assert_array_equal(replaced[teacher], expected[teacher])
+    assert replaced[teacher].any() and not replaced[24:].any()
+    np.testing.assert_array_equal(actions[~replaced], np.asarray(drive)[~replaced])
+    np.testing.assert_allclose(np.asarray(env.next_joints(states.joints, actions, t.active))[teacher][expected[teacher]],
+                               np.asarray(executed)[teacher][expected[teacher]], atol=1e-5)
+
+    none_planned = Demonstrations(jnp.zeros((1, 4, 6)), jnp.zeros(bank.size, jnp.int32), jnp.zeros(bank.size, jnp.int32), 2)
+    shared = Trainer(env, bank, none_planned, dataclasses.replace(config, expert=True, expert_share=0.25, expert_buffer=4096,
+                                                                  expert_replays=1))
+    state, metrics = jax.jit(lambda s: shared._rollout(s, jax.random.key(3)))(shared.init(jax.random.key(0)))
+    stored = int(state.expert_buffer.inserted)
+    assert stored == int(metrics["shielded_arm_steps"]) and np.asarray(state.expert_buffer.data.expert[:stored]).all()

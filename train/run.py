@@ -130,6 +130,7 @@ def _iteration_columns(metrics: dict) -> dict:
     """Metrics columns of a training iteration: curriculum, episodes, losses."""
     return {"level": int(metrics["level"]), "window_success": float(metrics["window_success"]),
             "episodes": int(metrics["ended"]), "successes": int(metrics["successes"]),
+            **({"shielded_arm_steps": int(metrics["shielded_arm_steps"])} if "shielded_arm_steps" in metrics else {}),
             **{k: float(metrics[k]) for k in ("critic_loss", "actor_loss", "q", "entropy", "alpha", "bc_loss", "expert_bc_loss",
                                               "expert_bc_share") if k in metrics},
             **{k: float(v) for k, v in metrics.items() if k.startswith(("level_", "window_success_"))}}

@@ -21,6 +21,13 @@ where a team collided queues the team's joints before that step; between iterati
 of them are planned by BiRRT to the task's goal configuration (:mod:`train.relabel`) and
 the next iteration replays the plans from those states as expert demonstrations.
 
+With ``shield_teacher`` = f > 0 (shield distillation, DAgger-style with safe execution as
+the teacher) the first f of the environments run every step through the shield
+(:mod:`mjx_multiarm.env.shield`); where it replaced an arm's motion (stepping away or
+holding), the executed motion is stored as that arm's action, flagged as an expert's, so
+the Q-filtered behaviour cloning (``sac.expert_bc``) teaches each arm from its own
+observation what the shield knew; those episodes do not count toward the curriculum.
+
 Options beyond the paper: ``curriculum_by_team`` gives every team size its own curriculum
 level (:class:`~train.curriculum.GroupedCurriculum`); ``expert_share`` = f > 0 keeps the
 expert transitions in a buffer of their own (``expert_buffer`` rows) and draws a fixed
@@ -42,6 +49,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from mjx_multiarm.env.observation import retarget
 from mjx_multiarm.env.reaching import ReachingEnv, State
+from mjx_multiarm.env.shield import PROPOSED
 from mjx_multiarm.env.wrappers import AutoReset, BatchState, TaskBank, replay_actions
 from mjx_multiarm.expert.store import ExpertStore
 from mjx_multiarm.options import option
@@ -84,6 +92,9 @@ class TrainConfig:
                              "task's goal configuration, and the plans are replayed as demonstrations (0: off)")
     relabel_queue: int = option(256, "collision states waiting for --relabel")
     relabel_seconds: float = option(0.5, "BiRRT time cap (s) of one --relabel plan")
+    shield_teacher: float = option(0.0, "shield distillation (DAgger with safe execution as the teacher): this fraction of the "
+                                        "environments runs every step through the shield, and where it replaced an arm's "
+                                        "motion the executed motion is stored as an expert transition (0: off)")
     sac: SACConfig = SACConfig()
 
     def __post_init__(self):
@@ -115,6 +126,10 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.relabel must be >= 0 and relabel_seconds > 0, got {self.relabel}, {self.relabel_seconds}")
         if self.relabel and (self.bc or not self.expert):
             raise ValueError("relabel replays planned demonstrations beside the policy's transitions: it needs expert=True and bc=False")
+        if not 0 <= self.shield_teacher <= 1:
+            raise ValueError(f"TrainConfig.shield_teacher must be in [0, 1], got {self.shield_teacher}")
+        if self.shield_teacher and self.bc:
+            raise ValueError("shield_teacher labels the policy's own rollouts; behaviour cloning (bc) runs none")
         if self.sac.expert_bc and (self.bc or not self.expert):
             raise ValueError("expert_bc adds behaviour cloning of expert demonstrations to SAC: it needs expert=True and bc=False")
 
@@ -220,12 +235,13 @@ class TrainState:
     expert_steps: jnp.ndarray
 
 
-def arm_transitions(before_obs, before_mask, actions, after: State, expert: bool) -> tuple[Transitions, jnp.ndarray]:
+def arm_transitions(before_obs, before_mask, actions, after: State, expert) -> tuple[Transitions, jnp.ndarray]:
     """Per-arm transitions of a batch of stepped environments, flattened over [..., arms].
 
     ``before_obs`` [..., A, A, 107] / ``before_mask`` [..., A, A] are the observations the
     actions [..., A, 6] were taken from; ``after`` the stepped states; ``expert``: the
-    actions are an expert's. Returns the transitions and their validity (active arms).
+    actions are an expert's (a bool, or [..., A] per arm). Returns the transitions and their
+    validity (active arms).
     """
     terminal = jnp.broadcast_to((after.done & ~after.truncated)[..., None], after.reward.shape)
 
@@ -235,7 +251,7 @@ def arm_transitions(before_obs, before_mask, actions, after: State, expert: bool
     transitions = Transitions(
         obs=flat(before_obs, 2), mask=flat(before_mask, 1), action=flat(actions, 1), reward=after.reward.reshape(-1),
         next_obs=flat(after.obs, 2), next_mask=flat(after.obs_mask, 1), terminal=terminal.reshape(-1),
-        expert=jnp.full(terminal.size, expert),
+        expert=jnp.broadcast_to(jnp.asarray(expert), after.reward.shape).reshape(-1),
     )
     return transitions, after.task.active.reshape(-1)
 
@@ -294,6 +310,9 @@ class Trainer:
         self.teams = teams
         self.mesh = Mesh(np.array(devices), ("data",))
         self.autoreset = AutoReset(env, bank)
+        #: Environments whose steps go through the shield teacher (the first ones), as a count and a mask.
+        self.teacher_count = max(1, round(config.shield_teacher * config.num_envs)) if config.shield_teacher else 0
+        self._teacher_envs = jnp.arange(config.num_envs) < self.teacher_count
         self.iteration = jax.jit(self._iteration, donate_argnums=0)  # the buffers are updated in place, not copied
 
     def place(self, state: TrainState) -> TrainState:
@@ -341,11 +360,14 @@ class Trainer:
             state = carry
             envs = state.envs
             actions, _ = state.agent.policy()(envs.env.obs, envs.env.obs_mask, step_key, self.std_scale(state))
+            actions, shielded = self._shielded(envs.env, actions)
             envs, stepped = self.autoreset.step(envs, actions)
-            buffer = state.buffer
+            buffer, expert_buffer = state.buffer, state.expert_buffer
             if not config.bc:
-                transitions, valid = arm_transitions(state.envs.env.obs, state.envs.env.obs_mask, actions, stepped, expert=False)
+                transitions, valid = arm_transitions(state.envs.env.obs, state.envs.env.obs_mask, actions, stepped, expert=shielded)
                 buffer = buffer.insert(transitions, valid)
+                if config.shield_teacher and config.expert_share:  # the teacher's motions are demonstrations too
+                    expert_buffer = expert_buffer.insert(transitions, valid & shielded.reshape(-1))
             ended = stepped.done
             failed = state.failed
             if config.expert:
@@ -355,21 +377,39 @@ class Trainer:
             if config.relabel:
                 collisions = collisions.push(stepped.collided.any(-1), (stepped.task.task_id, state.envs.env.joints))
             curriculum = state.curriculum
-            if config.curriculum:
+            if config.curriculum:  # shielded episodes are the teacher's: they do not count toward graduation
                 group = jnp.asarray(self.team_group)[stepped.task.active.sum(-1) - 1]
-                curriculum = curriculum.record(ended, stepped.success, group)
+                curriculum = curriculum.record(ended & ~self._teacher_envs, stepped.success, group)
                 envs = envs.replace(tolerance=self._tolerances(curriculum))
             active = stepped.task.active.sum(-1)
             trajectory = (state.envs.env, actions, stepped) if config.hindsight else None
-            state = state.replace(envs=envs, buffer=buffer, failed=failed, collisions=collisions, curriculum=curriculum,
-                                  env_steps=state.env_steps + config.num_envs)
-            return state, ({"ended": ended.sum(), "successes": (ended & stepped.success).sum(), "arm_steps": active.sum()}, trajectory)
+            state = state.replace(envs=envs, buffer=buffer, expert_buffer=expert_buffer, failed=failed, collisions=collisions,
+                                  curriculum=curriculum, env_steps=state.env_steps + config.num_envs)
+            return state, ({"ended": ended.sum(), "successes": (ended & stepped.success).sum(), "arm_steps": active.sum(),
+                            "shielded_arm_steps": shielded.sum()}, trajectory)
 
         state, (stats, trajectory) = jax.lax.scan(one_step, state, jax.random.split(key, config.rollout_steps))
         if config.hindsight:
             transitions, valid = hindsight_transitions(self.env, *trajectory, config.hindsight, jax.random.fold_in(key, 1))
             state = state.replace(buffer=state.buffer.insert(transitions, valid))
         return state, jax.tree.map(jnp.sum, stats)
+
+    def _shielded(self, envs: State, actions) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """The actions [B, A, 6] executed and which arms the shield teacher replaced [B, A]:
+        in the first ``shield_teacher`` share of the environments every team step goes
+        through safe execution (:mod:`mjx_multiarm.env.shield`), and an arm whose motion it
+        replaced (stepped away or held) executes the replacement, as an action."""
+        none = jnp.zeros(actions.shape[:-1], bool)
+        if not self.config.shield_teacher:
+            return actions, none
+        n = self.teacher_count
+        env, teacher = self.env, jax.tree.map(lambda x: x[:n], envs)
+        proposed = env.next_joints(teacher.joints, actions[:n], teacher.task.active)
+        task = teacher.task
+        executed, motion, _ = jax.vmap(env.shield)(task.base_pos, task.base_quat, teacher.joints, proposed, task.active)
+        replaced = (motion != PROPOSED) & task.active & ~teacher.done[:, None]
+        replacement = (executed - teacher.joints) / env.action_scale
+        return actions.at[:n].set(jnp.where(replaced[..., None], replacement, actions[:n])), none.at[:n].set(replaced)
 
     def _expert_replays(self, state: TrainState) -> TrainState:
         failed, rows, valid_task = state.failed.pop(self.config.expert_replays)
