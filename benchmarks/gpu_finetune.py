@@ -45,7 +45,7 @@ SETS = {
 
 #: size -> training tasks, fine-tune minutes, the flags that set the GPU batch sizes, tasks kept per set.
 SIZES = {
-    "full": dict(train_tasks=20_000, minutes=4.5, per_set=None,
+    "full": dict(train_tasks=20_000, minutes=3.5, per_set=None,
                  flags=["--num-envs", "1024", "--batch-size", "4096", "--updates-per-iteration", "32", "--warmup", "20000",
                         "--buffer-size", "1000000", "--expert-buffer-size", "1000000", "--expert-replays", "64",
                         "--no-buffer-checkpoint", "--checkpoint-minutes", "1", "--eval-minutes", "1"]),
