@@ -9,8 +9,11 @@
 parent, its own and the chain's env steps and training hours, success / collision /
 timeout rates per team size on each set) and, when the part's success over both sets
 (4,096 tasks, pooled) beats the best part so far (or the chain's root, evaluated the first
-time), copies its policy to ``benchmarks/chain/best.npz``: the policy the next part starts
-from (``python -m train.sac --init benchmarks/chain/best.npz``). Test sets are never used here.
+time), copies its policy to ``benchmarks/chain/best.npz``. Every part is also copied to
+``benchmarks/chain/head.npz``, the policy the next part starts from (``python -m train.sac
+--init benchmarks/chain/head.npz``): it carries its trained critics, so a part that is not
+better than the best is continued rather than thrown away with the training it holds. Test
+sets are never used here.
 ``plot`` draws validation success per team size against the chain's env steps and hours
 (``benchmarks/chain_curve.png``).
 """
@@ -28,6 +31,7 @@ import sys
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TABLE = ROOT / "benchmarks" / "chain.json"
 BEST = ROOT / "benchmarks" / "chain" / "best.npz"
+HEAD = ROOT / "benchmarks" / "chain" / "head.npz"
 VALIDATION = ("val2048", "crowdval2048")
 
 
@@ -93,10 +97,10 @@ def record(run_dir: pathlib.Path, data: pathlib.Path, note: str) -> None:
            "chain_train_hours": (parent["total_train_seconds"] + provenance["train_seconds"]) / 3600,
            "note": note, "validation": validation, "pooled_success": pooled(validation)}
     row["kept"] = row["pooled_success"] > best["pooled_success"]
-    if row["kept"]:
-        BEST.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(policy, BEST.with_name(".best.npz.tmp"))
-        os.replace(BEST.with_name(".best.npz.tmp"), BEST)
+    for target in (HEAD, BEST) if row["kept"] else (HEAD,):
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(policy, target.with_name(f".{target.name}.tmp"))
+        os.replace(target.with_name(f".{target.name}.tmp"), target)
     table.append(row)
     _atomic_json(TABLE, table)
     verdict = f"kept: {BEST}" if row["kept"] else f"not kept (best: part {best['part']}, {best['pooled_success']:.4f})"
