@@ -13,6 +13,7 @@ from test_env import _facing_pair, rollout
 from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
 from mjx_multiarm.env.shield import AWAY, HELD, PROPOSED, away_joints
 from mjx_multiarm.env.wrappers import TaskBank
+from mjx_multiarm.geometry.certified import certified_contacts
 from mjx_multiarm.geometry.collision import CONTACTS_ONLY, scene_contacts, swept_contacts
 from mjx_multiarm.tasks.types import take
 
@@ -39,13 +40,14 @@ def test_shielded_steps_never_collide_and_free_steps_pass_unchanged(crowded):
     limits = {"joint_range": env.joint_range, "max_step": env.max_step}
     shield = jax.jit(jax.vmap(env.shield))
     executed, motion, contacts = shield(t.base_pos, t.base_quat, t.start_joints, proposed, t.active)
-    sweep = jax.jit(jax.vmap(lambda p, q, a, b, active: swept_contacts(env.scene, p, q, a, b, active, env.substeps,
-                                                                                   max_distance=CONTACTS_ONLY)))
-    asked = np.asarray(sweep(t.base_pos, t.base_quat, t.start_joints, proposed, t.active).collided.any(-1))
-    done = sweep(t.base_pos, t.base_quat, t.start_joints, executed, t.active)
-    assert 5 <= asked.sum() < len(asked)  # the proposals collide in some teams, not all
-    assert not np.asarray(done.collided).any()  # the executed steps never do
-    np.testing.assert_array_equal(np.asarray(contacts.min_distance), np.asarray(done.min_distance))
+    certify = jax.jit(lambda p, q, a, b, active: certified_contacts(env.scene, p, q, a, b, active))
+    asked = np.asarray(certify(t.base_pos, t.base_quat, t.start_joints, proposed, t.active).collided.any(-1))
+    assert 5 <= asked.sum() < len(asked)  # the proposals are not certified free in some teams, not all
+    # The independent check: 256 configurations along every executed step, none in contact.
+    dense = swept_contacts(env.scene, t.base_pos, t.base_quat, t.start_joints, executed, t.active, 256, max_distance=CONTACTS_ONLY)
+    assert not np.asarray(dense.collided).any()
+    np.testing.assert_array_equal(np.asarray(contacts.min_distance),
+                                  np.asarray(certify(t.base_pos, t.base_quat, t.start_joints, executed, t.active).min_distance))
     executed, motion, proposed = (np.asarray(x) for x in (executed, motion, proposed))
     start, active = np.asarray(t.start_joints), np.asarray(t.active)
     np.testing.assert_array_equal(executed[~asked], proposed[~asked])  # free team steps are left alone
@@ -66,5 +68,9 @@ def test_arms_driven_into_each_other_never_collide_when_shielded():
     bank = TaskBank.from_tasks(_facing_pair(), 2)
     final, states, _ = rollout(ReachingEnv(2, EnvConfig(max_steps=80, safe=True)), 80)(bank.tasks, jnp.asarray([0.02, 0.1]))
     assert not np.asarray(states.collided).any() and np.asarray(states.metrics["min_distance"]).min() >= 0
+    task = jax.tree.map(lambda x: x[0], bank.tasks)  # its executed steps, re-checked densely
+    joints = np.concatenate([np.asarray(task.start_joints)[None], np.asarray(states.joints[:, 0])])
+    dense = swept_contacts(ReachingEnv(2).scene, task.base_pos, task.base_quat, joints[:-1], joints[1:], task.active, 256)
+    assert not np.asarray(dense.collided).any()
     assert np.asarray(states.metrics["shielded"][:, 0]).any(axis=0).all()  # both arms had to give way
     assert bool(final.truncated[0]) and int(final.step[0]) == 80

@@ -11,7 +11,9 @@ Control (kinematic position control of an industrial arm): every 0.05 s control 
 arm receives a 6-D action, a delta-joint command. The joint motion is
 ``clip(action * action_scale, -v_max * dt, v_max * dt)``, then the joint limits; by default
 ``action_scale = v_max * dt``, so an action of +-1 is full speed. The motion is checked for
-collision along the way (swept: substeps no further apart than 0.05 rad of any joint).
+collision along the way: by the sampled sweep (substeps no further apart than 0.05 rad of
+any joint; training and the paper's metric), or, with ``EnvConfig.safe``, by the certified
+motion check (:mod:`mjx_multiarm.geometry.certified`: no configuration along it touches).
 
 Rules (documented here once):
 
@@ -37,8 +39,10 @@ Rules (documented here once):
   position tolerance is at most t (m), so a tolerance curriculum turns restoring into the
   paper's rule once it reaches t.
 - With ``EnvConfig.safe`` (deployment, beyond the paper) the motion of a step is first
-  shielded (:mod:`mjx_multiarm.env.shield`): arms whose motions would collide step away
-  from the others or hold, so that a step never collides; its failures are timeouts.
+  shielded (:mod:`mjx_multiarm.env.shield`): arms whose motions are not certified free step
+  away from the others or hold, so that a step never collides anywhere along it; its
+  failures are timeouts. A contact between a moving arm and one that holds still is
+  reported for the moving arm.
 - Tolerances (eps_p m, eps_r rad) live in the state, so a curriculum changes them without
   recompiling. Reaching counts against the target of that step (moving targets move first).
 """
@@ -247,9 +251,8 @@ class ReachingEnv:
 
     def shield(self, base_pos, base_quat, joints, proposed, active):
         """:func:`~mjx_multiarm.env.shield.shielded_joints` of one team with this environment's
-        swept-check substeps, joint limits and step limits: (next joints, motion, contacts)."""
-        return shielded_joints(self.scene, base_pos, base_quat, joints, proposed, active, self.substeps, self.joint_range,
-                               self.max_step)
+        joint and step limits: (next joints, motion, certified verdict of the executed step)."""
+        return shielded_joints(self.scene, base_pos, base_quat, joints, proposed, active, self.joint_range, self.max_step)
 
     def _check_task(self, task: Tasks) -> None:
         if task.active.shape != (self.max_arms,):
@@ -362,7 +365,7 @@ class ReachingEnv:
             step=step,
             tolerance=state.tolerance,
             target_lengths=state.target_lengths,
-            metrics={"min_distance": contacts.min_distance, "nonfinite_action": task.active & ~finite.all(axis=-1), **metrics},
+            metrics={"min_distance": jnp.minimum(contacts.min_distance, 0.0), "nonfinite_action": task.active & ~finite.all(axis=-1), **metrics},
             **self._outcome(task, state.arms, arms, collided, state.tolerance, step),
         )
         finished = state.replace(reward=jnp.zeros_like(state.reward))

@@ -1,7 +1,8 @@
 """Safe execution: a team step that never collides in the model (beyond the paper).
 
-Before a team step is executed, every arm's motion is checked with the swept collision
-check against the other arms' motions (the environment's own check, same substeps). Each
+Before a team step is executed, every arm's motion is checked against the other arms'
+motions with the certified motion check (:mod:`mjx_multiarm.geometry.certified`: no
+configuration along the step can touch, not only the sampled ones). Each
 arm has three motions, tried in order: the one proposed (by the policy), a step away from
 the other arms (:func:`away_joints`: up the gradient of its distance to their link
 points), and holding still. While any motion of the team collides, the colliding arms step
@@ -10,8 +11,9 @@ not yet given the right of way: it keeps its motion for one more check, so that 
 arms that run into each other the lower one makes room and the higher one passes. An arm
 whose motion still collides when nothing else can give way steps down as well. Holding
 still is always free when the team's current configuration is free (held arms are where
-they were, and every moving arm is checked against them), so the loop ends with a
-collision-free step in at most 3 x arms checks. Stepping away (rather than holding, or
+they were, certified by their distances at the start, and every moving arm is checked
+against them), so the loop ends with a certified collision-free step in at most 3 x arms
+checks. Stepping away (rather than holding, or
 reversing the proposal) is what gets blocked arms unstuck: measured in
 benchmarks/RESULTS.md, "Safe execution".
 """
@@ -21,7 +23,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from mjx_multiarm.geometry.collision import CONTACTS_ONLY, Contacts, swept_contacts
+from mjx_multiarm.geometry.certified import CertifiedMotion, certified_contacts
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.scene import Scene
 
@@ -29,18 +31,18 @@ from mjx_multiarm.geometry.scene import Scene
 PROPOSED, AWAY, HELD = 0, 1, 2
 
 
-def shielded_joints(scene: Scene, base_pos, base_quat, joints, proposed, active, substeps: int, joint_range, max_step):
+def shielded_joints(scene: Scene, base_pos, base_quat, joints, proposed, active, joint_range, max_step):
     """The executed next joints of one team and what was done to each arm.
 
     Args:
       joints: [A, 6] the current (collision-free) joints; proposed: [A, 6] the next joints
         asked for (within the per-step and joint limits); active: [A] bool.
-      substeps, joint_range, max_step: the environment's swept-check substeps, joint limits
-        [6, 2] and largest joint motion per step [6].
+      joint_range, max_step: the environment's joint limits [6, 2] and largest joint motion
+        per step [6].
 
     Returns:
       (next joints [A, 6], motion [A] int: :data:`PROPOSED`, :data:`AWAY` or :data:`HELD`,
-      contacts of the executed step, contacts only: :data:`~mjx_multiarm.geometry.collision.CONTACTS_ONLY`).
+      the executed step's :class:`~mjx_multiarm.geometry.certified.CertifiedMotion`).
     """
     num_arms = joints.shape[-2]
     slot = jnp.arange(num_arms)
@@ -52,8 +54,8 @@ def shielded_joints(scene: Scene, base_pos, base_quat, joints, proposed, active,
     def motion(level):
         return jnp.take_along_axis(options, level[None, :, None], axis=0)[0]
 
-    def check(level) -> Contacts:
-        return swept_contacts(scene, base_pos, base_quat, joints, motion(level), active, substeps, max_distance=CONTACTS_ONLY)
+    def check(level) -> CertifiedMotion:
+        return certified_contacts(scene, base_pos, base_quat, joints, motion(level), active)
 
     def colliding(level, contacts):
         return contacts.collided & active & (level < HELD)

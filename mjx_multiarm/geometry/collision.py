@@ -312,25 +312,41 @@ def _between_arms(types, first, second, checked, boxes: bool) -> jnp.ndarray | N
     return result
 
 
-def _within_arm(types, pairs) -> jnp.ndarray:
-    """Per arm, the smallest signed distance over its self pairs [S, 2] (geom indices): [A, N].
+def _self_pair_distances(types, pairs) -> jnp.ndarray:
+    """Signed distance of each self pair [S, 2] (geom indices, capsules then boxes): [A, S, N].
 
-    Capsule pairs are gathered; blocks with boxes (an arm has few) are dense broadcasts of
-    the two types masked by the pair list, as between arms.
+    The pairs of each type combination are gathered and checked together.
     """
-    ngeom = sum(t.count for t in types)
-    checked = np.zeros((ngeom, ngeom), bool)
-    checked[pairs[:, 0], pairs[:, 1]] = True
-    result = None
-    for _, a, _, b, mask in _type_blocks(types, checked):
-        if a.is_box or b.is_box:
-            d = _pair_distance(a.expand(2), b.expand(1))  # [A, Ga, Gb, N]
-            d = jnp.where(mask[..., None], d, jnp.inf).min(axis=(1, 2))
-        else:
-            ga, gb = np.nonzero(mask)
-            d = _pair_distance(a.take(1, ga), b.take(1, gb)).min(axis=1)
-        result = d if result is None else jnp.minimum(result, d)
-    return result
+    offsets = np.cumsum([0] + [t.count for t in types])
+    kind = np.searchsorted(offsets, pairs, side="right") - 1  # the type of each geom
+    parts, rows = [], []
+    for ta, tb in sorted(set(map(tuple, kind.tolist()))):
+        chosen = np.nonzero((kind[:, 0] == ta) & (kind[:, 1] == tb))[0]
+        a, b = types[ta].take(1, pairs[chosen, 0] - offsets[ta]), types[tb].take(1, pairs[chosen, 1] - offsets[tb])
+        parts.append(_pair_distance(a, b))
+        rows.append(chosen)
+    return jnp.take(jnp.concatenate(parts, axis=1), np.argsort(np.concatenate(rows)), axis=1)
+
+
+def ground_geoms(scene: Scene) -> np.ndarray:
+    """The geoms checked against the ground, in the order of :func:`self_and_ground_distances`."""
+    g, ncap = scene.pairs.ground, scene.arm.num_capsules
+    return np.concatenate([g[g < ncap], g[g >= ncap]])
+
+
+def _ground_distances(scene: Scene, types) -> jnp.ndarray:
+    """Height above the ground of each geom of :func:`ground_geoms`: [A, G, N] (a capsule's
+    lowest end minus its radius, a box's lowest corner)."""
+    g, ncap = scene.pairs.ground, scene.arm.num_capsules
+    (p, q, radius), lowest = types[0].arrays, []
+    if (g < ncap).any():
+        gc = g[g < ncap]
+        lowest.append(jnp.minimum(p[2][:, gc], q[2][:, gc]) - radius[0, gc])
+    if (g >= ncap).any():
+        centre, axes, half = types[-1].arrays
+        gx = g[g >= ncap] - ncap
+        lowest.append(centre[2][:, gx] - (half[:, :, gx] * jnp.abs(axes[:, 2][:, :, gx])).sum(axis=0))
+    return jnp.concatenate(lowest, axis=1)
 
 
 def _posed_types(arm, capsules, boxes) -> list[_Geoms]:
@@ -361,22 +377,22 @@ def _flat_between(scene: Scene, boxes_only: bool, capsules, boxes) -> jnp.ndarra
 
 def _flat_self_and_ground(scene: Scene, capsules, boxes) -> tuple[jnp.ndarray, jnp.ndarray]:
     """Per arm, the smallest self and ground distances on a flat batch: [A, N] each."""
-    pairs, arm = scene.pairs, scene.arm
-    types = _posed_types(arm, capsules, boxes)
+    pairs = scene.pairs
+    types = _posed_types(scene.arm, capsules, boxes)
     shape = (capsules.shape[1], capsules.shape[0])
-    self_dist = _within_arm(types, pairs.self_pairs) if len(pairs.self_pairs) else jnp.full(shape, jnp.inf)
-    # Ground: lowest capsule end minus the radius, lowest box corner.
-    g, ncap = pairs.ground, arm.num_capsules
-    (p, q, radius), lowest = types[0].arrays, []
-    if (g < ncap).any():
-        gc = g[g < ncap]
-        lowest.append(jnp.minimum(p[2][:, gc], q[2][:, gc]) - radius[0, gc])
-    if (g >= ncap).any():
-        centre, axes, half = types[-1].arrays
-        gx = g[g >= ncap] - ncap
-        lowest.append(centre[2][:, gx] - (half[:, :, gx] * jnp.abs(axes[:, 2][:, :, gx])).sum(axis=0))
-    ground = jnp.concatenate(lowest, axis=1).min(axis=1) if lowest else jnp.full(shape, jnp.inf)
+    self_dist = _self_pair_distances(types, pairs.self_pairs).min(axis=1) if len(pairs.self_pairs) else jnp.full(shape, jnp.inf)
+    ground = _ground_distances(scene, types).min(axis=1) if len(pairs.ground) else jnp.full(shape, jnp.inf)
     return self_dist, ground
+
+
+def self_and_ground_distances(scene: Scene, frames: ArmFrames) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Every self pair's signed distance [..., A, S] (``scene.pairs.self_pairs`` order) and every
+    ground geom's height [..., A, G] (:func:`ground_geoms` order) of posed arms (XLA kernel)."""
+    batch = frames.capsules.shape[:-4]
+    flat = lambda x: x.reshape(-1, *x.shape[len(batch):])  # noqa: E731
+    types = _posed_types(scene.arm, flat(frames.capsules), flat(frames.boxes))
+    unflat = lambda x: jnp.moveaxis(x, -1, 0).reshape(*batch, *x.shape[:-1])  # noqa: E731  [A, K, N] -> [..., A, K]
+    return unflat(_self_pair_distances(types, scene.pairs.self_pairs)), unflat(_ground_distances(scene, types))
 
 
 def geom_clearances(scene: Scene, capsules, boxes, other_capsules, other_boxes) -> jnp.ndarray:

@@ -1,0 +1,128 @@
+"""The certified motion check: its motion bounds hold, nothing it certifies touches in a dense
+re-check, and it flags the pass-throughs that the sampled sweep misses."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mjx_multiarm.env.reaching import ReachingEnv
+from mjx_multiarm.env.wrappers import TaskBank
+from mjx_multiarm.geometry.certified import certified_contacts, geom_reach
+from mjx_multiarm.geometry.collision import CONTACTS_ONLY, scene_contacts, swept_contacts
+from mjx_multiarm.geometry.kinematics import forward_kinematics
+from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.geometry.transforms import yaw_quat
+from mjx_multiarm.tasks.types import take
+
+#: Configurations of the dense reference check per motion.
+DENSE = 256
+
+# A two-arm full-speed step whose 4 evenly spaced checks are all free while the motion
+# passes 3.3 mm deep into contact (found by benchmarks/swept_collision.py's sampler).
+PASS_THROUGH = dict(
+    base_pos=np.array([[0.0, 0.0, 0.0], [-0.43702042, -0.39976576, 0.0]], np.float32),
+    base_quat=np.array([[0.7626506, 0.0, 0.0, 0.6468107], [0.7886666, 0.0, 0.0, 0.61482114]], np.float32),
+    start=np.array([[-3.424077, -1.2740806, 0.9467317, -1.6047561, -1.773134, -1.16416],
+                    [-2.5572677, -1.5391283, 0.9409775, -0.3819861, -0.0845928, 0.9462252]], np.float32),
+    end=np.array([[-3.581577, -1.1165806, 0.78923166, -1.4447562, -1.613134, -1.00416],
+                  [-2.3997676, -1.6966283, 0.78347754, -0.22198611, -0.24459279, 1.1062253]], np.float32),
+)
+
+
+def _geom_points(frames) -> np.ndarray:
+    """[..., P, 3] the capsule segment ends and the box corners of posed arms."""
+    arm = load_arm()
+    boxes = np.asarray(frames.boxes)  # [..., nbox, 4, 3]: centre, then unit axes
+    signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3, indexing="ij")).reshape(3, -1).T  # [8, 3]
+    corners = boxes[..., :1, :] + np.einsum("ck,bk,...bkx->...bcx", signs, arm.box_half, boxes[..., 1:, :])
+    capsules = np.asarray(frames.capsules)
+    return np.concatenate([capsules.reshape(*capsules.shape[:-3], -1, 3), corners.reshape(*corners.shape[:-3], -1, 3)], -2)
+
+
+def test_no_point_of_a_geom_moves_further_than_its_bound():
+    """Turning one joint by a small angle moves every capsule end and box corner by at most the
+    angle times the geom's reach from that joint's axis (zero for geoms before the joint);
+    for a geom fixed to the joint's body the bound is met."""
+    arm, reach = load_arm(), geom_reach(load_arm())
+    rng = np.random.default_rng(0)
+    joints = rng.uniform(*arm.joint_range.T, size=(512, 6)).astype(np.float32)
+    zero = jnp.zeros(3)
+    per_point = np.concatenate([np.repeat(np.arange(arm.num_capsules), 2), np.repeat(arm.num_capsules + np.arange(arm.num_boxes), 8)])
+    before = _geom_points(forward_kinematics(arm, zero, jnp.array([1.0, 0, 0, 0]), joints))
+    for j in range(6):
+        angle = 0.02
+        turned = joints.copy()
+        turned[:, j] += angle
+        after = _geom_points(forward_kinematics(arm, zero, jnp.array([1.0, 0, 0, 0]), turned))
+        moved = np.linalg.norm(after - before, axis=-1)  # [n, P]
+        assert np.all(moved <= angle * reach[j, per_point] + 1e-5), j
+    gripper = per_point == arm.num_capsules + arm.num_boxes - 1  # a box on the last joint's body: its bound is exact
+    assert moved[:, gripper].max() > 0.99 * angle * reach[5, -1]
+
+
+def test_the_pass_through_the_sampled_sweep_misses_is_flagged():
+    env = ReachingEnv(2)
+    p = PASS_THROUGH
+    active = jnp.ones(2, bool)
+    sampled = swept_contacts(env.scene, p["base_pos"], p["base_quat"], p["start"], p["end"], active, env.substeps)
+    dense = swept_contacts(env.scene, p["base_pos"], p["base_quat"], p["start"], p["end"], active, DENSE)
+    assert not np.asarray(sampled.collided).any() and np.asarray(dense.min_distance).min() < -0.003
+    verdict = certified_contacts(env.scene, p["base_pos"], p["base_quat"], p["start"], p["end"], active)
+    assert np.asarray(verdict.collided).any()
+
+
+def _random_two_arm_steps(n: int, seed: int):
+    """Two-arm scenes (bases 0.5-0.9 m apart) and a full-speed step of every joint of both arms."""
+    env = ReachingEnv(2)
+    arm = env.scene.arm
+    rng = np.random.default_rng(seed)
+    angle, gap = rng.uniform(-np.pi, np.pi, n), rng.uniform(0.5, 0.9, n)
+    pos = np.zeros((n, 2, 3), np.float32)
+    pos[:, 1, :2] = gap[:, None] * np.stack([np.cos(angle), np.sin(angle)], -1)
+    quat = np.asarray(yaw_quat(rng.uniform(-np.pi, np.pi, (n, 2))), np.float32)
+    q0 = np.clip(arm.home + rng.normal(0.0, 1.0, (n, 2, 6)), *arm.joint_range.T).astype(np.float32)
+    q1 = (q0 + rng.choice([-1.0, 1.0], (n, 2, 6)) * env.max_step).astype(np.float32)
+    return env, pos, quat, q0, q1, np.ones((n, 2), bool)
+
+
+@pytest.fixture(scope="module")
+def crowded_steps(generated):
+    """Free team configurations of the generated 2-6-arm tasks along their start-goal paths and a
+    full-speed step toward the goal; arms at the goal hold still."""
+    tasks = take(generated, (generated.num_arms >= 2) & (generated.num_arms <= 6))
+    env = ReachingEnv(6)
+    t = TaskBank.from_tasks(tasks, 6).tasks
+    t = jax.tree.map(lambda x: jnp.concatenate([x] * 4), t)
+    fraction = jnp.repeat(jnp.array([0.0, 0.3, 0.6, 1.0]), tasks.num_tasks)[:, None, None]
+    q0 = t.start_joints + fraction * (t.goal_joints - t.start_joints)
+    q1 = env.next_joints(q0, env.joint_deltas_to_actions(t.goal_joints - q0), t.active)
+    return env, t.base_pos, t.base_quat, q0, q1, t.active
+
+
+@pytest.mark.parametrize("steps", ["random two-arm", "crowded teams"])
+def test_nothing_certified_free_touches_in_a_dense_recheck(steps, crowded_steps):
+    """Team by team: a step certified free has no contact at 256 configurations along it; every
+    step the dense or the sampled check finds in contact is flagged; and the check is not
+    much more cautious than the dense one."""
+    env, pos, quat, q0, q1, active = _random_two_arm_steps(2048, 1) if steps == "random two-arm" else crowded_steps
+    start_free = ~np.asarray(scene_contacts(env.scene, pos, quat, q0, active).collided.any(-1))
+    check = jax.jit(lambda *a: certified_contacts(env.scene, *a))
+    verdict = check(pos, quat, q0, q1, active)
+    flagged = np.asarray(verdict.collided.any(-1))[start_free]
+    dense = np.asarray(swept_contacts(env.scene, pos, quat, q0, q1, active, DENSE, max_distance=CONTACTS_ONLY).collided.any(-1))[start_free]
+    sampled = np.asarray(swept_contacts(env.scene, pos, quat, q0, q1, active, env.substeps).collided.any(-1))[start_free]
+    assert dense.sum() >= 5 and start_free.sum() >= 200  # the sample has contacts to find
+    assert not (dense & ~flagged).any() and not (sampled & ~flagged).any()
+    assert (flagged & ~dense).sum() <= 0.05 * (~dense).sum()
+    evaluations = np.asarray(verdict.evaluations)[start_free]
+    assert evaluations.min() >= 1 and np.median(evaluations) <= 16
+
+
+def test_a_team_that_holds_still_is_certified_at_its_start():
+    env, pos, quat, q0, _, active = _random_two_arm_steps(64, 2)
+    free = ~np.asarray(scene_contacts(env.scene, pos, quat, q0, active).collided.any(-1))
+    verdict = certified_contacts(env.scene, pos[free], quat[free], q0[free], q0[free], active[free])
+    assert not np.asarray(verdict.collided).any() and (np.asarray(verdict.evaluations) == 1).all()
