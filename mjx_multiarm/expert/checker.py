@@ -35,8 +35,8 @@ from mjx_multiarm.geometry.robot import NUM_JOINTS, load_arm
 from mjx_multiarm.geometry.scene import build_scene
 
 _jit = numba.njit(cache=True, nogil=True)
-#: Clearance (m) that an expert's replayed steps must keep, so that the environment's
-#: float32 kernel (errors ~1e-6 m) sees no contact where this float64 code saw none. Small,
+#: Clearance (m) that an expert's replayed steps must keep (:func:`mjx_multiarm.expert.solve.replay_free`),
+#: so that float32 rounding (errors ~1e-6 m) cannot turn a graze into a contact. Small,
 #: because task goals may lie this close to contact (generated tasks: 1 in 1,000 within 0.1 mm).
 REPLAY_MARGIN = 1e-5
 
@@ -138,6 +138,7 @@ class CollisionChecker:
         if len(base_pos) != len(base_quat) or not len(base_pos):
             raise ValueError(f"base_pos {base_pos.shape} and base_quat {base_quat.shape} must describe the same k >= 1 arms")
         self.num_arms = len(base_pos)
+        self.base_pos, self.base_quat = base_pos, base_quat
         self.lower = np.tile(joint_range[:, 0], self.num_arms)
         self.upper = np.tile(joint_range[:, 1], self.num_arms)
         self.resolution = resolution
@@ -160,18 +161,6 @@ class CollisionChecker:
 
     def in_bounds(self, config) -> bool:
         return bool(np.all(config >= self.lower) and np.all(config <= self.upper))
-
-    def steps_free(self, start, deltas, substeps: int, margin: float = REPLAY_MARGIN) -> bool:
-        """Executing ``deltas`` [T, 6k] from ``start`` as the environment does (float32 joints,
-        joint limits, ``substeps`` checks per step) never comes within ``margin`` of contact
-        (the default covers the environment's float32 arithmetic)."""
-        joints = [np.asarray(start, np.float32)]
-        for delta in np.asarray(deltas, np.float32):
-            joints.append(np.clip(joints[-1] + delta, self.lower, self.upper).astype(np.float32))
-        joints = np.stack(joints)
-        fractions = (np.arange(1, substeps + 1, dtype=np.float32) / substeps)[:, None, None]
-        configs = joints[:-1] + fractions * (joints[1:] - joints[:-1])
-        return not self.any_collides(np.swapaxes(configs, 0, 1).reshape(-1, joints.shape[-1]), margin)
 
     def motion_free(self, start, end) -> bool:
         """The straight motion start -> end (start assumed valid) is collision-free."""

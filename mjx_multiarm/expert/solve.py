@@ -3,20 +3,26 @@
 A task's expert is the delta-joint step sequence of its decimated RRT-Connect plan
 (:mod:`mjx_multiarm.expert.planner`, :mod:`mjx_multiarm.expert.decimate`). Before it is
 accepted the sequence is executed the way the environment executes it (float32 joints,
-joint limits, the same swept check at the same substeps, keeping
-:data:`~mjx_multiarm.expert.checker.REPLAY_MARGIN` of clearance for the environment's float32
-arithmetic); the planner's edge checks sample other configurations, so a sub-millimetre
-graze can pass one check and fail the other. On such a disagreement the task is planned again with the next seed, up to
-``PlannerConfig.attempts`` times, so every stored expert replays without collision.
+joint limits) and every step is checked with the certified motion check
+(:mod:`mjx_multiarm.geometry.certified`), keeping
+:data:`~mjx_multiarm.expert.checker.REPLAY_MARGIN` of clearance for float32 arithmetic; the
+planner's edge checks sample configurations, so a sub-millimetre graze can pass them and
+fail this check. On such a disagreement the task is planned again with the next seed, up to
+``PlannerConfig.attempts`` times, so every stored expert is certified free: no configuration
+along its steps touches (and so the environment's sampled sweep never sees a contact).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from mjx_multiarm.env.reaching import step_limits
+from mjx_multiarm.expert.checker import REPLAY_MARGIN
 from mjx_multiarm.expert.decimate import ANGLE_TOLERANCE, path_to_deltas
 from mjx_multiarm.expert.planner import (
     REPLAY_COLLISION,
@@ -26,7 +32,9 @@ from mjx_multiarm.expert.planner import (
     plan,
     task_seed,
 )
-from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.geometry.certified import certified_contacts
+from mjx_multiarm.geometry.robot import NUM_JOINTS, load_arm
+from mjx_multiarm.geometry.scene import build_scene
 from mjx_multiarm.tasks.types import Tasks
 
 
@@ -54,7 +62,7 @@ class ExpertResult:
 def solve(checker: CollisionChecker, start, goal, config: PlannerConfig, seed: int, task_id: int = 0,
           angle_tolerance: float = ANGLE_TOLERANCE) -> ExpertResult:
     """Expert steps from composite ``start`` to ``goal`` ([6k] each) of ``checker``'s arms."""
-    max_step, substeps = step_limits(load_arm())
+    max_step, _ = step_limits(load_arm())
     empty = np.zeros((0, checker.num_arms, 6), np.float32)
     total_s, total_iterations = 0.0, 0
     for attempt in range(config.attempts):
@@ -63,9 +71,34 @@ def solve(checker: CollisionChecker, start, goal, config: PlannerConfig, seed: i
         if result.status != SOLVED:
             return ExpertResult(task_id, result.status, empty, total_s, total_iterations, attempt + 1)
         deltas = path_to_deltas(result.path, max_step, angle_tolerance)
-        if checker.steps_free(start, deltas.reshape(len(deltas), -1), substeps):
+        if replay_free(checker, start, deltas):
             return ExpertResult(task_id, SOLVED, deltas, total_s, total_iterations, attempt + 1)
     return ExpertResult(task_id, REPLAY_COLLISION, empty, total_s, total_iterations, config.attempts)
+
+
+@functools.cache
+def _certified_steps(num_arms: int):
+    scene = build_scene(num_arms)
+
+    @jax.jit
+    def collided(base_pos, base_quat, joints):
+        active = jnp.ones(joints.shape[1:-1], bool)
+        return certified_contacts(scene, base_pos, base_quat, joints[:-1], joints[1:], active, REPLAY_MARGIN).collided.any()
+
+    return collided
+
+
+def replay_free(checker: CollisionChecker, start, deltas) -> bool:
+    """Whether executing ``deltas`` [T, k, 6] from composite ``start`` [6k] as the environment
+    does (float32 joints, joint limits) is certified free, keeping :data:`REPLAY_MARGIN`."""
+    lower, upper = (np.asarray(x, np.float32).reshape(-1, NUM_JOINTS) for x in (checker.lower, checker.upper))
+    joints = [np.asarray(start, np.float32).reshape(-1, NUM_JOINTS)]
+    for delta in np.asarray(deltas, np.float32):
+        joints.append(np.clip(joints[-1] + delta, lower, upper).astype(np.float32))
+    padded = 1 << max(len(joints) - 1, 1).bit_length()  # few distinct compiles: the end repeated (a motion of zero)
+    joints = np.stack(joints + [joints[-1]] * (padded - len(joints)))
+    return not bool(_certified_steps(checker.num_arms)(np.asarray(checker.base_pos, np.float32),
+                                                       np.asarray(checker.base_quat, np.float32), joints))
 
 
 def team_checker(base_pos, base_quat, resolution: float) -> CollisionChecker:

@@ -155,13 +155,14 @@ def _fraction(distance, rate):
     return jnp.where(rate > 0, distance / jnp.where(rate > 0, rate, 1.0), jnp.where(distance >= 0, jnp.inf, -jnp.inf))
 
 
-def certified_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, active,
+def certified_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, active, margin: float = 0.0,
                        max_evaluations: int = MAX_EVALUATIONS, smallest_step: float = SMALLEST_STEP) -> CertifiedMotion:
     """Certified collision verdict of the straight motion ``joints_from -> joints_to`` (module doc).
 
     Args:
       base_pos: [..., A, 3]; base_quat: [..., A, 4] (wxyz); joints_from / joints_to:
         [..., A, 6]; active: [..., A] bool. Any leading batch dims; one march per team.
+      margin: clearance (m) every arm must keep along the motion to be certified.
     """
     joints_from, joints_to = jnp.asarray(joints_from), jnp.asarray(joints_to)
     shape = jnp.broadcast_shapes(joints_from.shape, joints_to.shape)
@@ -180,8 +181,9 @@ def certified_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to
         joints = joints_from + s[..., None, None] * (joints_to - joints_from)
         contacts = scene_contacts(scene, base_pos, base_quat, joints, active, CERTIFY_RANGE)
         self_dist, ground = self_and_ground_distances(scene, forward_kinematics(scene.arm, base_pos, base_quat, joints))
-        step = jnp.minimum(_fraction(contacts.between_arms, between_rate),
-                           jnp.minimum(_fraction(self_dist, self_rate).min(axis=-1), _fraction(ground, ground_rate).min(axis=-1)))
+        step = jnp.minimum(_fraction(contacts.between_arms - margin, between_rate),
+                           jnp.minimum(_fraction(self_dist - margin, self_rate).min(axis=-1),
+                                       _fraction(ground - margin, ground_rate).min(axis=-1)))
         return contacts, step
 
     def body(carry):
@@ -189,7 +191,7 @@ def certified_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to
         live = (active & ~done & ~bad).any(axis=-1)  # teams still marching (the others wait, unchanged)
         contacts, step = evaluate(s)
         seen = jax.tree.map(lambda old, new: jnp.where(live[..., None], jnp.minimum(old, new), old), seen, contacts)
-        certified = (step >= (1.0 - s)[..., None]) | ((count == 0)[..., None] & ~moving & (contacts.min_distance >= 0))
+        certified = (step >= (1.0 - s)[..., None]) | ((count == 0)[..., None] & ~moving & (step >= 0))
         done = done | (live[..., None] & ~bad & certified)
         bad = bad | (active & ~done & (step < smallest_step))
         pending = active & ~done & ~bad

@@ -37,7 +37,8 @@ from mjx_multiarm.env.observation import ArmSnapshot, observe
 from mjx_multiarm.env.reaching import EVAL_TOLERANCE, EnvConfig, ReachingEnv
 from mjx_multiarm.expert.planner import SOLVED, PlannerConfig
 from mjx_multiarm.expert.solve import solve_team
-from mjx_multiarm.geometry.collision import scene_contacts, swept_contacts
+from mjx_multiarm.geometry.certified import certified_contacts
+from mjx_multiarm.geometry.collision import scene_contacts
 from mjx_multiarm.geometry.evaluate import base_pose_arrays, check_finite, evaluate_arms
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import NUM_JOINTS
@@ -59,9 +60,10 @@ class PlannedPath:
       position_error: [n] end-effector distance to the target (m) at the last waypoint.
       angle_error: [n] orientation error (rad) at the last waypoint.
       min_distance: [n] each arm's smallest signed distance (m) to the other arms, itself
-        and the ground along the path (the start and every motion between waypoints,
-        swept); negative where it collides.
-      collided: bool, some arm collides along the path (``min_distance < 0``).
+        and the ground at the configurations checked along the path (the start, and those
+        the certified motion check evaluated between waypoints); negative where it collides.
+      collided: bool, the start collides or some motion between waypoints is not certified
+        free (:mod:`mjx_multiarm.geometry.certified`: no configuration along it touches).
       handed_over: waypoints at the end planned by BiRRT from where the policy stopped
         (``rollout(..., goal_joints=...)``; 0 where the policy did it all).
     """
@@ -152,16 +154,17 @@ class Planner:
                 def body(carry, _):
                     prev, joints = carry
                     following = _policy_joints(env, actor, base_pos, base_quat, prev, joints, targets, targets)
-                    swept = swept_contacts(env.scene, base_pos, base_quat, joints, following, active, env.substeps)
-                    return (joints, following), (following, swept.min_distance)
+                    verdict = certified_contacts(env.scene, base_pos, base_quat, joints, following, active)
+                    return (joints, following), (following, verdict.min_distance, verdict.collided)
 
-                _, (path, distance) = jax.lax.scan(body, (start, start), None, length=steps)
+                _, (path, distance, collided) = jax.lax.scan(body, (start, start), None, length=steps)
                 waypoints = jnp.concatenate([start[None], path])
-                distance = jnp.concatenate([scene_contacts(env.scene, base_pos, base_quat, start, active).min_distance[None],
-                                            distance])
+                at_start = scene_contacts(env.scene, base_pos, base_quat, start, active)
+                distance = jnp.concatenate([at_start.min_distance[None], distance])
+                collided = jnp.concatenate([at_start.collided[None], collided])
                 frames = jax.vmap(lambda q: forward_kinematics(env.scene.arm, base_pos, base_quat, q))(waypoints)
                 return (waypoints, jnp.linalg.norm(frames.ee_pos - target_pos, axis=-1), quat_angle(frames.ee_quat, target_quat),
-                        distance)
+                        distance, collided)
 
             self._compiled["rollout", num_arms, steps] = jax.jit(rollout)
         return functools.partial(self._compiled["rollout", num_arms, steps], self._actor)
@@ -206,13 +209,13 @@ class Planner:
                 handover: PlannerConfig = PlannerConfig()) -> PlannedPath:
         """Run the policy from ``joints`` toward static ``targets`` for at most ``steps``
         control steps, stopping once every arm is within ``tolerance``; the path's collisions
-        (the start, and every motion swept as the environment checks it) are reported in
-        :class:`PlannedPath` (with ``safe=True`` the motions are collision-free).
+        (the start, and every motion by the certified motion check) are reported in
+        :class:`PlannedPath` (with ``safe=True`` the motions are certified collision-free).
 
         ``goal_joints`` [n, 6] (configurations at the targets) makes it a hybrid planner
         (:mod:`mjx_multiarm.planner.handover`): where the policy stops short without a
         collision, BiRRT (``handover`` settings) plans the team from its last waypoint to
-        them, and the plan's waypoints (replay-checked at the environment's substeps) are
+        them, and the plan's waypoints (its motions certified by the expert's replay check) are
         appended; their ``min_distance`` is measured at the waypoints.
         """
         if steps < 1:
@@ -224,13 +227,13 @@ class Planner:
                 raise ValueError(f"goal_joints: expected shape ({n}, {NUM_JOINTS}) for {n} arms, got {goal_joints.shape}")
             check_finite("goal_joints", goal_joints)
         outputs = self._rollout(n, steps)(base_pos, base_quat, start, target_pos, target_quat)
-        waypoints, position, angle, distance = (np.asarray(x, np.float64) for x in outputs)
+        waypoints, position, angle, distance = (np.asarray(x, np.float64) for x in outputs[:4])
         reached = (position < tolerance[0]) & (angle < tolerance[1])
         done = np.flatnonzero(reached.all(axis=1))
         last = int(done[0]) if done.size else steps
         min_distance = distance[: last + 1].min(axis=0)
         path = PlannedPath(waypoints[: last + 1], bool(reached[last].all()), position[last], angle[last], min_distance,
-                           bool((min_distance < 0).any()))
+                           bool(np.asarray(outputs[4])[: last + 1].any()))
         if goal_joints is None or path.reached or path.collided:
             return path
         result = solve_team(base_pos, base_quat, path.waypoints[-1], goal_joints, handover)
