@@ -10,6 +10,7 @@ import pytest
 
 from mjx_multiarm.env.reaching import ReachingEnv
 from mjx_multiarm.env.wrappers import TaskBank
+from mjx_multiarm.expert.solve import team_checker
 from mjx_multiarm.geometry.certified import certified_contacts, geom_reach
 from mjx_multiarm.geometry.collision import CONTACTS_ONLY, scene_contacts, swept_contacts
 from mjx_multiarm.geometry.kinematics import forward_kinematics
@@ -126,3 +127,17 @@ def test_a_team_that_holds_still_is_certified_at_its_start():
     free = ~np.asarray(scene_contacts(env.scene, pos, quat, q0, active).collided.any(-1))
     verdict = certified_contacts(env.scene, pos[free], quat[free], q0[free], q0[free], active[free])
     assert not np.asarray(verdict.collided).any() and (np.asarray(verdict.evaluations) == 1).all()
+
+
+def test_the_planners_certified_check_agrees_with_the_dense_recheck():
+    """The expert's replay check (numba, pair by pair) certifies no motion that the dense check
+    finds in contact, flags the sampled sweep's miss, and certifies most free motions."""
+    env, pos, quat, q0, q1, active = _random_two_arm_steps(1024, 3)
+    dense = np.asarray(swept_contacts(env.scene, pos, quat, q0, q1, active, DENSE, max_distance=CONTACTS_ONLY).collided.any(-1))
+    start_free = ~np.asarray(scene_contacts(env.scene, pos, quat, q0, active).collided.any(-1))
+    certified = np.array([team_checker(p, q, 0.05).steps_certified(np.stack([a, b]), 0.0)
+                          for p, q, a, b in zip(pos, quat, q0, q1)])
+    assert not (certified & dense).any() and dense[start_free].sum() >= 3
+    assert (~certified & ~dense & start_free).sum() <= 0.05 * (~dense & start_free).sum()
+    p = PASS_THROUGH
+    assert not team_checker(p["base_pos"], p["base_quat"], 0.05).steps_certified(np.stack([p["start"], p["end"]]), 0.0)

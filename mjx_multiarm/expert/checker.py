@@ -31,6 +31,7 @@ from mjx_multiarm.geometry.compiled import (
     ground_distance,
     pose_arm,
 )
+from mjx_multiarm.geometry.certified import MAX_EVALUATIONS, SMALLEST_STEP, geom_reach, pair_tables
 from mjx_multiarm.geometry.robot import NUM_JOINTS, load_arm
 from mjx_multiarm.geometry.scene import build_scene
 
@@ -92,6 +93,94 @@ def _pairs_touch(pairs, i, j, capsules, boxes, centres, radii, radius, box_half,
         if geom_distance(capsules, boxes, i, a, j, b, radius, box_half) < margin:
             return True
     return False
+
+
+@_jit
+def _pair_certified(start, end, i, a, j, b, rate, margin, smallest, max_evaluations, base_pos, base_rot, arm, radius,
+                    box_half, capsules, boxes):
+    """Conservative advancement of one geom pair (a of arm i, b of arm j; ``b < 0``: a's height
+    above the ground) along start -> end [k, 6], whose distance shrinks by at most ``rate`` per
+    unit of the motion: whether it keeps ``margin`` all along (see mjx_multiarm.geometry.certified)."""
+    ncap, s = radius.shape[0], 0.0
+    joints = start.copy()
+    for _ in range(max_evaluations):
+        for m in range(6):
+            joints[i, m] = start[i, m] + s * (end[i, m] - start[i, m])
+            joints[j, m] = start[j, m] + s * (end[j, m] - start[j, m])
+        pose_arm(base_pos, base_rot, joints, i, arm, capsules, boxes)
+        if j != i:
+            pose_arm(base_pos, base_rot, joints, j, arm, capsules, boxes)
+        if b >= 0:
+            d = geom_distance(capsules, boxes, i, a, j, b, radius, box_half)
+        elif a < ncap:
+            d = min(capsules[i, a, 0, 2], capsules[i, a, 1, 2]) - radius[a]
+        else:
+            d = boxes[i, a - ncap, 0, 2]
+            for m in range(3):
+                d -= box_half[a - ncap, m] * abs(boxes[i, a - ncap, m + 1, 2])
+        if d < margin:
+            return False
+        if rate <= 0.0 or (d - margin) >= rate * (1.0 - s):
+            return True
+        step = (d - margin) / rate
+        if step < smallest:
+            return False
+        s += step
+    return False
+
+
+@_jit
+def _step_certified(start, end, margin, smallest, max_evaluations, base_pos, base_rot, arm, radius, box_half, self_pairs,
+                    between_pairs, ground, reach, self_joints, self_outer):
+    """Whether the team motion start -> end [k, 6] is certified to keep ``margin`` everywhere:
+    every between-arm, self and ground pair by its own conservative advancement, after a
+    bounding-sphere test at the start that certifies the pairs far enough apart."""
+    k, ncap, nbox = start.shape[0], radius.shape[0], box_half.shape[0]
+    ngeom = ncap + nbox
+    capsules = np.empty((k, ncap, 2, 3))
+    boxes = np.empty((k, nbox, 4, 3))
+    centres = np.empty((k, ngeom, 3))
+    radii = np.empty((k, ngeom))
+    speed = np.zeros((k, ngeom))  # how far each geom can move along the motion
+    for i in range(k):
+        pose_arm(base_pos, base_rot, start, i, arm, capsules, boxes)
+        bounding_spheres(capsules, boxes, i, radius, box_half, centres, radii)
+        for g in range(ngeom):
+            for m in range(6):
+                speed[i, g] += abs(end[i, m] - start[i, m]) * reach[m, g]
+    for i in range(k):
+        for g in ground:
+            if not _pair_certified(start, end, i, g, i, -1, speed[i, g], margin, smallest, max_evaluations, base_pos,
+                                   base_rot, arm, radius, box_half, capsules, boxes):
+                return False
+        for p in range(self_pairs.shape[0]):
+            rate = 0.0
+            for m in range(6):
+                if self_joints[m, p]:
+                    rate += abs(end[i, m] - start[i, m]) * reach[m, self_outer[p]]
+            if not _pair_certified(start, end, i, self_pairs[p, 0], i, self_pairs[p, 1], rate, margin, smallest,
+                                   max_evaluations, base_pos, base_rot, arm, radius, box_half, capsules, boxes):
+                return False
+        for j in range(i + 1, k):
+            for p in range(between_pairs.shape[0]):
+                a, b = between_pairs[p, 0], between_pairs[p, 1]
+                rate = speed[i, a] + speed[j, b]
+                gap = math.sqrt(centre_distance2(centres, i, a, j, b)) - radii[i, a] - radii[j, b]
+                if gap - margin >= rate:
+                    continue
+                if not _pair_certified(start, end, i, a, j, b, rate, margin, smallest, max_evaluations, base_pos, base_rot,
+                                       arm, radius, box_half, capsules, boxes):
+                    return False
+    return True
+
+
+@_jit
+def _steps_certified(joints, margin, smallest, max_evaluations, *model):
+    """Whether every motion joints[t] -> joints[t + 1] of [T + 1, k, 6] is certified free."""
+    for t in range(joints.shape[0] - 1):
+        if not _step_certified(joints[t], joints[t + 1], margin, smallest, max_evaluations, *model):
+            return False
+    return True
 
 
 @_jit
@@ -162,6 +251,15 @@ class CollisionChecker:
     def in_bounds(self, config) -> bool:
         return bool(np.all(config >= self.lower) and np.all(config <= self.upper))
 
+    def steps_certified(self, joints, margin: float = REPLAY_MARGIN) -> bool:
+        """Whether every straight motion between consecutive team configurations ``joints``
+        [T + 1, k, 6] keeps ``margin`` all along (certified: :mod:`mjx_multiarm.geometry.certified`'s
+        guarantee, pair by pair, with its step and evaluation limits)."""
+        joints = np.asarray(joints, np.float64)
+        if joints.ndim != 3 or joints.shape[1:] != (self.num_arms, NUM_JOINTS):
+            raise ValueError(f"joints: expected [T + 1, {self.num_arms}, {NUM_JOINTS}], got {joints.shape}")
+        return bool(_steps_certified(joints, float(margin), SMALLEST_STEP, MAX_EVALUATIONS, *self._model, *_reach_constants()))
+
     def motion_free(self, start, end) -> bool:
         """The straight motion start -> end (start assumed valid) is collision-free."""
         start, end = np.asarray(start, np.float64), np.asarray(end, np.float64)
@@ -174,6 +272,15 @@ class CollisionChecker:
         if configs.ndim != 2 or configs.shape[1] != self.num_arms * NUM_JOINTS:
             raise ValueError(f"configs: expected [n, {self.num_arms * NUM_JOINTS}], got {configs.shape}")
         return configs.reshape(len(configs), self.num_arms, NUM_JOINTS)
+
+
+@functools.cache
+def _reach_constants() -> tuple:
+    """The certified check's tables: the geoms' reach from each joint's axis [6, ngeom], the
+    joints between each self pair's bodies [6, S] and its outer geom [S]."""
+    scene = build_scene(2)
+    _, outer, between, _ = pair_tables(scene)
+    return geom_reach(scene.arm), between, outer.astype(np.int64)
 
 
 @functools.cache

@@ -15,10 +15,7 @@ along its steps touches (and so the environment's sampled sweep never sees a con
 from __future__ import annotations
 
 import dataclasses
-import functools
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from mjx_multiarm.env.reaching import step_limits
@@ -32,9 +29,7 @@ from mjx_multiarm.expert.planner import (
     plan,
     task_seed,
 )
-from mjx_multiarm.geometry.certified import certified_contacts
 from mjx_multiarm.geometry.robot import NUM_JOINTS, load_arm
-from mjx_multiarm.geometry.scene import build_scene
 from mjx_multiarm.tasks.types import Tasks
 
 
@@ -76,18 +71,6 @@ def solve(checker: CollisionChecker, start, goal, config: PlannerConfig, seed: i
     return ExpertResult(task_id, REPLAY_COLLISION, empty, total_s, total_iterations, config.attempts)
 
 
-@functools.cache
-def _certified_steps(num_arms: int):
-    scene = build_scene(num_arms)
-
-    @jax.jit
-    def collided(base_pos, base_quat, joints):
-        active = jnp.ones(joints.shape[1:-1], bool)
-        return certified_contacts(scene, base_pos, base_quat, joints[:-1], joints[1:], active, REPLAY_MARGIN).collided.any()
-
-    return collided
-
-
 def replay_free(checker: CollisionChecker, start, deltas) -> bool:
     """Whether executing ``deltas`` [T, k, 6] from composite ``start`` [6k] as the environment
     does (float32 joints, joint limits) is certified free, keeping :data:`REPLAY_MARGIN`."""
@@ -95,10 +78,7 @@ def replay_free(checker: CollisionChecker, start, deltas) -> bool:
     joints = [np.asarray(start, np.float32).reshape(-1, NUM_JOINTS)]
     for delta in np.asarray(deltas, np.float32):
         joints.append(np.clip(joints[-1] + delta, lower, upper).astype(np.float32))
-    padded = 1 << max(len(joints) - 1, 1).bit_length()  # few distinct compiles: the end repeated (a motion of zero)
-    joints = np.stack(joints + [joints[-1]] * (padded - len(joints)))
-    return not bool(_certified_steps(checker.num_arms)(np.asarray(checker.base_pos, np.float32),
-                                                       np.asarray(checker.base_quat, np.float32), joints))
+    return checker.steps_certified(np.stack(joints), REPLAY_MARGIN)
 
 
 def team_checker(base_pos, base_quat, resolution: float) -> CollisionChecker:

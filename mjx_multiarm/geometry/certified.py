@@ -5,10 +5,12 @@ along it can touch (beyond the paper; the sampled sweep of
 The check is conservative advancement (Schwarzer, Saha and Latombe 2005; FCL's
 conservative advancement) with the exact distances of :mod:`mjx_multiarm.geometry.collision`:
 
-- Motion bound. Along ``q(s) = q0 + s (q1 - q0)``, s in [0, 1], a point of a geom of body b
-  moves at most ``sum_j |q1_j - q0_j| R[j, g]`` over the whole motion, where ``R[j, g]`` bounds
-  the distance of any point of geom g from joint j's axis (:func:`geom_reach`; configuration
-  independent). An arm's bound ``M`` is the largest over its geoms.
+- Motion bound. Along ``q(s) = q0 + s (q1 - q0)``, s in [0, 1], a point of a geom g moves at
+  most ``sum_j |q1_j - q0_j| R[j, g]`` per unit of s, where ``R[j, g]`` bounds the distance of
+  any point of g from joint j's axis over the rest of the motion: its distance at the
+  current pose plus how far the joints beyond j can still move it, capped by a
+  configuration-independent bound (:func:`geom_reach`). An arm's bound ``M`` is the largest
+  over its geoms.
 - Rates. The distance of an arm to another arm shrinks by at most ``M_a + M_other`` per unit
   of s (``M_other``: the largest bound of the other active arms); a self pair's by at most
   the bound of its outer geom over the joints between the two bodies (relative motion in
@@ -44,13 +46,14 @@ from mjx_multiarm.geometry.collision import Contacts, ground_geoms, scene_contac
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import NUM_JOINTS, ArmModel
 from mjx_multiarm.geometry.scene import Scene
+from mjx_multiarm.geometry.transforms import quat_to_mat
 
 #: Smallest step (a fraction of the motion) the march may take; an arm that needs a smaller
 #: one is reported as colliding (with the arms' full-speed bound of about 0.5 m a step,
 #: this is a clearance of about 0.5 mm).
-SMALLEST_STEP = 1.0 / 1024
+SMALLEST_STEP = 1.0 / 8192
 #: Evaluations of the team after which arms still pending are reported as colliding.
-MAX_EVALUATIONS = 64
+MAX_EVALUATIONS = 256
 #: Distances beyond this (m) are not computed exactly (the collision kernel's
 #: ``max_distance``); any value is sound, larger ones take fewer evaluations.
 CERTIFY_RANGE = 1.0
@@ -99,23 +102,62 @@ def geom_reach(arm: ArmModel) -> np.ndarray:
 
 
 @functools.cache
-def _rate_weights(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """[6, ngeom], [6, S], [6, G]: per unit of |joint motion|, how fast each geom can move, each
-    self pair's distance and each ground geom's height can shrink."""
-    arm, reach = scene.arm, geom_reach(scene.arm)
+def pair_tables(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The static tables of the rates: joint bodies [6], each self pair's outer geom [S] (the
+    one on the later body) and the joints between its two bodies [6, S] bool (those that move
+    the pair relative to each other), the ground geoms [G]."""
+    arm = scene.arm
     bodies = np.concatenate([arm.capsule_body, arm.box_body])
     joint_body = np.array([arm.body_joint.index(j) for j in range(NUM_JOINTS)])
     pairs = scene.pairs.self_pairs
     inner = np.minimum(bodies[pairs[:, 0]], bodies[pairs[:, 1]])
     outer = np.where(bodies[pairs[:, 0]] > bodies[pairs[:, 1]], pairs[:, 0], pairs[:, 1])
     between = (joint_body[:, None] > inner[None]) & (joint_body[:, None] <= bodies[outer][None])
-    return reach, np.where(between, reach[:, outer], 0.0), reach[:, ground_geoms(scene)]
+    return joint_body, outer, between, ground_geoms(scene)
+
+
+def _reach_now(scene: Scene, frames, delta, remaining) -> jnp.ndarray:
+    """[..., A, 6, ngeom] bounds on each geom's distance from each joint's axis over the rest of
+    the motion: its distance now (posed ``frames``) plus how far the joints beyond can move it
+    in the ``remaining`` fraction, capped by :func:`geom_reach`."""
+    arm = scene.arm
+    reach = jnp.asarray(geom_reach(arm), delta.dtype)
+    joint_body = pair_tables(scene)[0]
+    origin = frames.body_pos[..., joint_body, :]  # [..., A, 6, 3]
+    axis = jnp.einsum("...jab,jb->...ja", quat_to_mat(frames.body_quat[..., joint_body, :]),
+                      jnp.asarray(arm.joint_axis / np.linalg.norm(arm.joint_axis, axis=-1, keepdims=True), delta.dtype))
+    signs = jnp.asarray(np.array(np.meshgrid(*[[-1.0, 1.0]] * 3, indexing="ij")).reshape(3, -1).T, delta.dtype)
+    corners = frames.boxes[..., :1, :] + jnp.einsum("ck,bk,...bkx->...bcx", signs, jnp.asarray(arm.box_half, delta.dtype),
+                                                    frames.boxes[..., 1:, :])  # [..., A, B, 8, 3]
+
+    def farthest(points):  # [..., A, K, P, 3] -> [..., A, 6, K]
+        offset = points[..., None, :, :, :] - origin[..., :, None, None, :]
+        along = (offset * axis[..., :, None, None, :]).sum(-1, keepdims=True)
+        return jnp.linalg.norm(offset - along * axis[..., :, None, None, :], axis=-1).max(axis=-1)
+
+    radius = jnp.concatenate([jnp.asarray(arm.capsule_radius, delta.dtype), jnp.zeros(arm.num_boxes, delta.dtype)])
+    now = jnp.concatenate([farthest(frames.capsules), farthest(corners)], axis=-1) + radius
+    moved = delta[..., :, None] * reach  # [..., A, 6, G]: how far each joint can move each geom
+    beyond = jnp.cumsum(moved[..., ::-1, :], axis=-2)[..., ::-1, :] - moved  # by the joints after each joint
+    return jnp.where(reach > 0, jnp.minimum(reach, now + remaining[..., None, None, None] * beyond), 0.0)
 
 
 def motion_bounds(scene: Scene, joints_from, joints_to, active) -> jnp.ndarray:
-    """[..., A] how far (m) any point of each arm's geoms can move along the straight motion."""
-    reach = jnp.asarray(_rate_weights(scene)[0], jnp.result_type(joints_from))
+    """[..., A] how far (m) any point of each arm's geoms can move along the straight motion
+    (from :func:`geom_reach`; the march tightens it with the arms' poses)."""
+    reach = jnp.asarray(geom_reach(scene.arm), jnp.result_type(joints_from))
     return jnp.where(active, (jnp.abs(joints_to - joints_from) @ reach).max(axis=-1), 0.0)
+
+
+def _rates(scene: Scene, frames, delta, remaining, active):
+    """Per unit of motion from here on: how fast each arm's distance to the other arms [..., A],
+    each self pair's distance [..., A, S] and each ground geom's height [..., A, G] can shrink."""
+    _, outer, between, ground = pair_tables(scene)
+    reach = _reach_now(scene, frames, delta, remaining)
+    speed = jnp.einsum("...j,...jg->...g", delta, reach)  # [..., A, G]
+    bound = jnp.where(active, speed.max(axis=-1), 0.0)
+    self_rate = jnp.einsum("...j,...js,js->...s", delta, reach[..., outer], jnp.asarray(between, delta.dtype))
+    return bound + _other_max(bound, active), self_rate, speed[..., ground]
 
 
 @struct.dataclass
@@ -169,18 +211,16 @@ def certified_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to
     joints_from, joints_to = jnp.broadcast_to(joints_from, shape), jnp.broadcast_to(joints_to, shape)
     active = jnp.broadcast_to(active, shape[:-1])
     delta = jnp.abs(joints_to - joints_from)
-    _, self_weights, ground_weights = (jnp.asarray(w, joints_from.dtype) for w in _rate_weights(scene))
-    bounds = motion_bounds(scene, joints_from, joints_to, active)
-    between_rate = bounds + _other_max(bounds, active)
-    self_rate, ground_rate = delta @ self_weights, delta @ ground_weights  # [..., A, S], [..., A, G]
-    moving = bounds > 0
+    moving = motion_bounds(scene, joints_from, joints_to, active) > 0
 
     def evaluate(s):
         """Per arm: the distances as the kernel reports them, and the fraction of the rest of the
         motion they certify."""
         joints = joints_from + s[..., None, None] * (joints_to - joints_from)
         contacts = scene_contacts(scene, base_pos, base_quat, joints, active, CERTIFY_RANGE)
-        self_dist, ground = self_and_ground_distances(scene, forward_kinematics(scene.arm, base_pos, base_quat, joints))
+        frames = forward_kinematics(scene.arm, base_pos, base_quat, joints)
+        self_dist, ground = self_and_ground_distances(scene, frames)
+        between_rate, self_rate, ground_rate = _rates(scene, frames, delta, 1.0 - s, active)
         step = jnp.minimum(_fraction(contacts.between_arms - margin, between_rate),
                            jnp.minimum(_fraction(self_dist - margin, self_rate).min(axis=-1),
                                        _fraction(ground - margin, ground_rate).min(axis=-1)))
