@@ -2,6 +2,7 @@
 
     python benchmarks/chain.py record runs/part1 --data DATA --note "..."   # evaluate a part, keep it if better
     python benchmarks/chain.py plot                                            # the curve across the parts
+    python benchmarks/chain.py evaluate runs/lever/policy.npz --data DATA        # a lever's policy, not recorded
 
 ``record`` evaluates the part's ``policy.npz`` (plain policy, mean actions, 500 steps,
 2 cm / 0.1 rad) on the validation sets ``DATA/val2048.npz`` (the paper's bins) and
@@ -140,11 +141,18 @@ def main(argv=None) -> None:
     rec.add_argument("run_dir", type=pathlib.Path)
     rec.add_argument("--data", type=pathlib.Path, required=True, help="folder holding val2048.npz and crowdval2048.npz")
     rec.add_argument("--note", default="", help="what this part changed")
+    scored = commands.add_parser("evaluate", help="print a policy's validation rates (a lever's), without recording it")
+    scored.add_argument("policy", type=pathlib.Path)
+    scored.add_argument("--data", type=pathlib.Path, required=True, help="folder holding val2048.npz and crowdval2048.npz")
     drawn = commands.add_parser("plot", help="validation success across the parts")
     drawn.add_argument("--out", type=pathlib.Path, default=ROOT / "benchmarks" / "chain_curve.png")
     args = parser.parse_args(argv)
     if args.command == "record":
         record(args.run_dir.absolute(), args.data.absolute(), args.note)
+    elif args.command == "evaluate":
+        validation = evaluate(args.policy.absolute(), args.data.absolute())
+        print(json.dumps({"policy": str(args.policy), "env_steps": _provenance(args.policy)[1].get("env_steps"),
+                          "pooled_success": pooled(validation), "validation": validation}))
     else:
         plot(args.out)
 

@@ -1,0 +1,159 @@
+"""The certified motion check, checked independently: a dense re-check finds no contact in
+anything it certifies (issue 51).
+
+Two parts, each re-checking motions at ``--dense`` evenly spaced configurations (the start
+and end included) with the collision kernel (``swept_contacts``):
+
+- ``--random N``: N two-arm full-speed steps (benchmarks/swept_collision.py's sampler, both
+  ends free). Reports, for the environment's certified check (JAX,
+  ``mjx_multiarm.geometry.certified``) and the expert's (numba, pair by pair,
+  ``CollisionChecker.steps_certified``): the motions it certifies, how many of those the
+  dense check finds in contact (must be 0), how many it flags that the dense check finds
+  free (its caution), and the evaluations the JAX march took.
+- ``--tasks FILE``: the safe policy (``Planner(safe=True)``, the shipped policy unless
+  ``--checkpoint``) run on the first ``--per-size`` tasks of each team size for 500 steps;
+  every executed step before its episode ended is re-checked densely (must find no contact).
+
+    python benchmarks/certified_check.py --random 100000 --json
+    python benchmarks/certified_check.py --tasks test1to10.npz --per-size 32 --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from common import cpu_name
+
+from mjx_multiarm.env.reaching import ReachingEnv
+from mjx_multiarm.env.wrappers import TaskBank
+from mjx_multiarm.expert.solve import team_checker
+from mjx_multiarm.geometry.certified import certified_contacts
+from mjx_multiarm.geometry.collision import CONTACTS_ONLY, scene_contacts, swept_contacts
+from mjx_multiarm.geometry.transforms import yaw_quat
+from mjx_multiarm.planner.policy import SHIPPED_POLICY, Planner
+from mjx_multiarm.tasks.dataset import load_tasks
+from mjx_multiarm.tasks.types import take
+
+
+def random_steps(n: int, rng: np.random.Generator):
+    """Two-arm scenes (bases 0.5-0.9 m apart, random yaws, joints home + N(0, 1 rad)) and a
+    full-speed step of every joint of both arms: (env, base_pos, base_quat, q0, q1)."""
+    env = ReachingEnv(2)
+    arm = env.scene.arm
+    angle, gap = rng.uniform(-np.pi, np.pi, n), rng.uniform(0.5, 0.9, n)
+    pos = np.zeros((n, 2, 3), np.float32)
+    pos[:, 1, :2] = gap[:, None] * np.stack([np.cos(angle), np.sin(angle)], -1)
+    quat = np.asarray(yaw_quat(rng.uniform(-np.pi, np.pi, (n, 2))), np.float32)
+    q0 = np.clip(arm.home + rng.normal(0.0, 1.0, (n, 2, 6)), *arm.joint_range.T).astype(np.float32)
+    q1 = (q0 + rng.choice([-1.0, 1.0], (n, 2, 6)) * env.max_step).astype(np.float32)
+    return env, pos, quat, q0, q1
+
+
+def _dense_collided(scene, pos, quat, q0, q1, active, dense: int) -> np.ndarray:
+    """[n] some configuration among ``dense`` + 1 evenly spaced along q0 -> q1 is in contact."""
+    start = scene_contacts(scene, pos, quat, q0, active, CONTACTS_ONLY).collided.any(-1)
+    along = swept_contacts(scene, pos, quat, q0, q1, active, dense, max_distance=CONTACTS_ONLY).collided.any(-1)
+    return np.asarray(start | along)
+
+
+def check_random(samples: int, dense: int, seed: int = 0, batch: int = 4096) -> dict:
+    """Part one of the module doc."""
+    rng = np.random.default_rng(seed)
+    counts = {name: {"certified": 0, "certified_in_contact": 0, "flagged_free": 0} for name in ("jax", "numba")}
+    motions, in_contact, evaluations = 0, 0, []
+    for start in range(0, samples, batch):
+        env, pos, quat, q0, q1 = random_steps(min(batch, samples - start), rng)
+        active = np.ones(q0.shape[:-1], bool)
+        ends_free = ~np.asarray((scene_contacts(env.scene, pos, quat, q0, active).collided
+                                 | scene_contacts(env.scene, pos, quat, q1, active).collided).any(-1))
+        pos, quat, q0, q1, active = pos[ends_free], quat[ends_free], q0[ends_free], q1[ends_free], active[ends_free]
+        touches = _dense_collided(env.scene, pos, quat, q0, q1, active, dense)
+        verdict = jax.jit(lambda *a: certified_contacts(env.scene, *a))(pos, quat, q0, q1, active)
+        free = {"jax": ~np.asarray(verdict.collided.any(-1)),
+                "numba": np.array([team_checker(p, q, 0.05).steps_certified(np.stack([a, b]), 0.0)
+                                   for p, q, a, b in zip(pos, quat, q0, q1)])}
+        for name, ok in free.items():
+            counts[name]["certified"] += int(ok.sum())
+            counts[name]["certified_in_contact"] += int((ok & touches).sum())
+            counts[name]["flagged_free"] += int((~ok & ~touches).sum())
+        motions, in_contact = motions + len(q0), in_contact + int(touches.sum())
+        evaluations.append(np.asarray(verdict.evaluations))
+    evaluations = np.concatenate(evaluations)
+    return {"samples": samples, "motions_with_free_ends": motions, "dense": dense, "dense_in_contact": in_contact,
+            "checks": counts, "jax_evaluations_mean": float(evaluations.mean()),
+            "jax_evaluations_p99": float(np.percentile(evaluations, 99)), "jax_evaluations_max": int(evaluations.max())}
+
+
+def check_rollouts(tasks_path: pathlib.Path, checkpoint: pathlib.Path | None, per_size: int, dense: int,
+                   steps: int = 500) -> dict:
+    """Part two of the module doc."""
+    tasks, _ = load_tasks(tasks_path)
+    planner = Planner.load(checkpoint, safe=True)
+    result = {"tasks": str(tasks_path), "policy": str(checkpoint or SHIPPED_POLICY), "dense": dense, "by_team_size": {}}
+    for size in sorted(set(tasks.num_arms.tolist())):
+        subset = take(tasks, np.flatnonzero(tasks.num_arms == size)[:per_size])
+        env = planner.environment(size, max_steps=steps)
+        bank = TaskBank.from_tasks(subset, size)
+        policy = planner.policy_fn()
+
+        @jax.jit
+        def run(tasks, params, env=env, policy=policy):
+            start = jax.vmap(lambda task: env.reset(None, task))(tasks)
+
+            def body(states, _):
+                following = jax.vmap(env.step)(states, policy(states, params))
+                return following, (following.joints, states.done)
+
+            return jax.lax.scan(body, start, None, length=steps)[1]
+
+        joints, done_before = (np.asarray(x) for x in run(bank.tasks, planner.params))  # [T, N, A, 6], [T, N]
+        before = np.concatenate([np.asarray(bank.tasks.start_joints)[None], joints[:-1]])
+        t, n = np.nonzero(~done_before)  # the steps executed before each episode ended
+        t0 = time.perf_counter()
+        touched = _dense_collided(env.scene, np.asarray(bank.tasks.base_pos)[n], np.asarray(bank.tasks.base_quat)[n],
+                                  before[t, n], joints[t, n], np.asarray(bank.tasks.active)[n], dense)
+        result["by_team_size"][str(size)] = {"tasks": bank.size, "steps_checked": int(len(t)),
+                                             "steps_in_contact": int(touched.sum()),
+                                             "recheck_s": time.perf_counter() - t0}
+        print(f"  {size:>2} arms: {bank.size} tasks, {len(t):,} executed steps re-checked, {int(touched.sum())} in contact",
+              flush=True)
+    return result
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--random", type=int, default=0, help="random two-arm full-speed steps to re-check")
+    parser.add_argument("--tasks", type=pathlib.Path, help="a task file: re-check the safe policy's executed steps")
+    parser.add_argument("--checkpoint", type=pathlib.Path, help="policy file (default: the shipped policy)")
+    parser.add_argument("--per-size", type=int, default=32, help="tasks per team size of --tasks")
+    parser.add_argument("--dense", type=int, default=256, help="configurations per motion of the re-check")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", action="store_true", help="end with one JSON line")
+    args = parser.parse_args(argv)
+    if not args.random and args.tasks is None:
+        parser.error("give --random N and/or --tasks FILE")
+    print(f"# {cpu_name()}, jax {jax.__version__}")
+    report = {}
+    if args.random:
+        r = report["random"] = check_random(args.random, args.dense, args.seed)
+        print(f"{r['motions_with_free_ends']:,} of {r['samples']:,} two-arm full-speed steps have free ends; the dense check "
+              f"({r['dense']} configurations) finds {r['dense_in_contact']} of them in contact")
+        for name, c in r["checks"].items():
+            print(f"  {name} certified check: certifies {c['certified']:,}, of which in contact {c['certified_in_contact']}; "
+                  f"flags {c['flagged_free']} free motions")
+        print(f"  JAX march: {r['jax_evaluations_mean']:.1f} evaluations on average, p99 {r['jax_evaluations_p99']:.0f}, "
+              f"max {r['jax_evaluations_max']}")
+    if args.tasks is not None:
+        report["rollouts"] = check_rollouts(args.tasks, args.checkpoint, args.per_size, args.dense)
+    if args.json:
+        print(json.dumps(report))
+
+
+if __name__ == "__main__":
+    main()
