@@ -26,64 +26,59 @@ import pathlib
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
-from common import cpu_name
+from common import cpu_name, random_two_arm_steps
 
 from mjx_multiarm.env.reaching import ReachingEnv
 from mjx_multiarm.env.wrappers import TaskBank
 from mjx_multiarm.expert.solve import team_checker
 from mjx_multiarm.geometry.certified import certified_contacts
-from mjx_multiarm.geometry.collision import CONTACTS_ONLY, scene_contacts, swept_contacts
-from mjx_multiarm.geometry.transforms import yaw_quat
+from mjx_multiarm.geometry.collision import (
+    CONTACTS_ONLY,
+    scene_contacts,
+    swept_contacts,
+)
 from mjx_multiarm.planner.policy import SHIPPED_POLICY, Planner
 from mjx_multiarm.tasks.dataset import load_tasks
 from mjx_multiarm.tasks.types import take
 
 
-def random_steps(n: int, rng: np.random.Generator):
-    """Two-arm scenes (bases 0.5-0.9 m apart, random yaws, joints home + N(0, 1 rad)) and a
-    full-speed step of every joint of both arms: (env, base_pos, base_quat, q0, q1)."""
-    env = ReachingEnv(2)
-    arm = env.scene.arm
-    angle, gap = rng.uniform(-np.pi, np.pi, n), rng.uniform(0.5, 0.9, n)
-    pos = np.zeros((n, 2, 3), np.float32)
-    pos[:, 1, :2] = gap[:, None] * np.stack([np.cos(angle), np.sin(angle)], -1)
-    quat = np.asarray(yaw_quat(rng.uniform(-np.pi, np.pi, (n, 2))), np.float32)
-    q0 = np.clip(arm.home + rng.normal(0.0, 1.0, (n, 2, 6)), *arm.joint_range.T).astype(np.float32)
-    q1 = (q0 + rng.choice([-1.0, 1.0], (n, 2, 6)) * env.max_step).astype(np.float32)
-    return env, pos, quat, q0, q1
+def _dense_check(scene, dense: int):
+    """A jitted ``(pos, quat, q0, q1, active) -> [n]``: some configuration among ``dense`` + 1
+    evenly spaced along q0 -> q1 is in contact."""
 
+    @jax.jit
+    def collided(pos, quat, q0, q1, active):
+        start = scene_contacts(scene, pos, quat, q0, active, CONTACTS_ONLY).collided.any(-1)
+        return start | swept_contacts(scene, pos, quat, q0, q1, active, dense, max_distance=CONTACTS_ONLY).collided.any(-1)
 
-def _dense_collided(scene, pos, quat, q0, q1, active, dense: int) -> np.ndarray:
-    """[n] some configuration among ``dense`` + 1 evenly spaced along q0 -> q1 is in contact."""
-    start = scene_contacts(scene, pos, quat, q0, active, CONTACTS_ONLY).collided.any(-1)
-    along = swept_contacts(scene, pos, quat, q0, q1, active, dense, max_distance=CONTACTS_ONLY).collided.any(-1)
-    return np.asarray(start | along)
+    return collided
 
 
 def check_random(samples: int, dense: int, seed: int = 0, batch: int = 4096) -> dict:
     """Part one of the module doc."""
     rng = np.random.default_rng(seed)
+    scene = ReachingEnv(2).scene
+    dense_collided = _dense_check(scene, dense)
+    certify = jax.jit(lambda *a: certified_contacts(scene, *a))
+    free_at = jax.jit(lambda pos, quat, q, active: ~scene_contacts(scene, pos, quat, q, active).collided.any(-1))
     counts = {name: {"certified": 0, "certified_in_contact": 0, "flagged_free": 0} for name in ("jax", "numba")}
     motions, in_contact, evaluations = 0, 0, []
     for start in range(0, samples, batch):
-        env, pos, quat, q0, q1 = random_steps(min(batch, samples - start), rng)
+        _, pos, quat, q0, q1 = random_two_arm_steps(min(batch, samples - start), rng)
         active = np.ones(q0.shape[:-1], bool)
-        ends_free = ~np.asarray((scene_contacts(env.scene, pos, quat, q0, active).collided
-                                 | scene_contacts(env.scene, pos, quat, q1, active).collided).any(-1))
-        pos, quat, q0, q1, active = pos[ends_free], quat[ends_free], q0[ends_free], q1[ends_free], active[ends_free]
-        touches = _dense_collided(env.scene, pos, quat, q0, q1, active, dense)
-        verdict = jax.jit(lambda *a: certified_contacts(env.scene, *a))(pos, quat, q0, q1, active)
-        free = {"jax": ~np.asarray(verdict.collided.any(-1)),
+        ends_free = np.asarray(free_at(pos, quat, q0, active) & free_at(pos, quat, q1, active))
+        touches = np.asarray(dense_collided(pos, quat, q0, q1, active))[ends_free]
+        verdict = certify(pos, quat, q0, q1, active)
+        free = {"jax": ~np.asarray(verdict.collided.any(-1))[ends_free],
                 "numba": np.array([team_checker(p, q, 0.05).steps_certified(np.stack([a, b]), 0.0)
-                                   for p, q, a, b in zip(pos, quat, q0, q1)])}
+                                   for p, q, a, b in zip(pos[ends_free], quat[ends_free], q0[ends_free], q1[ends_free])])}
         for name, ok in free.items():
             counts[name]["certified"] += int(ok.sum())
             counts[name]["certified_in_contact"] += int((ok & touches).sum())
             counts[name]["flagged_free"] += int((~ok & ~touches).sum())
-        motions, in_contact = motions + len(q0), in_contact + int(touches.sum())
-        evaluations.append(np.asarray(verdict.evaluations))
+        motions, in_contact = motions + int(ends_free.sum()), in_contact + int(touches.sum())
+        evaluations.append(np.asarray(verdict.evaluations)[ends_free])
     evaluations = np.concatenate(evaluations)
     return {"samples": samples, "motions_with_free_ends": motions, "dense": dense, "dense_in_contact": in_contact,
             "checks": counts, "jax_evaluations_mean": float(evaluations.mean()),
@@ -116,8 +111,11 @@ def check_rollouts(tasks_path: pathlib.Path, checkpoint: pathlib.Path | None, pe
         before = np.concatenate([np.asarray(bank.tasks.start_joints)[None], joints[:-1]])
         t, n = np.nonzero(~done_before)  # the steps executed before each episode ended
         t0 = time.perf_counter()
-        touched = _dense_collided(env.scene, np.asarray(bank.tasks.base_pos)[n], np.asarray(bank.tasks.base_quat)[n],
-                                  before[t, n], joints[t, n], np.asarray(bank.tasks.active)[n], dense)
+        check, chunk = _dense_check(env.scene, dense), 512
+        rows = np.concatenate([np.arange(len(t)), np.zeros(-len(t) % chunk, int)])  # padded to whole chunks
+        touched = np.concatenate([np.asarray(check(*(np.asarray(x)[part] for x in (
+            np.asarray(bank.tasks.base_pos)[n], np.asarray(bank.tasks.base_quat)[n], before[t, n], joints[t, n],
+            np.asarray(bank.tasks.active)[n])))) for part in rows.reshape(-1, chunk)])[: len(t)]
         result["by_team_size"][str(size)] = {"tasks": bank.size, "steps_checked": int(len(t)),
                                              "steps_in_contact": int(touched.sum()),
                                              "recheck_s": time.perf_counter() - t0}

@@ -20,11 +20,10 @@ import json
 import jax
 import jax.numpy as jnp
 import numpy as np
-from common import cpu_name
+from common import cpu_name, random_two_arm_steps
 
 from mjx_multiarm.env.reaching import ReachingEnv
 from mjx_multiarm.geometry.collision import scene_contacts
-from mjx_multiarm.geometry.transforms import yaw_quat
 
 
 def measure(samples: int, dense: int, seed: int = 0, batch: int = 8192, substeps: tuple[int, ...] = ()) -> dict:
@@ -32,7 +31,6 @@ def measure(samples: int, dense: int, seed: int = 0, batch: int = 8192, substeps
     environment's count) evenly spaced configurations miss of them."""
     env = ReachingEnv(2)
     substeps = tuple(substeps) or (env.substeps,)
-    arm = env.scene.arm
 
     @jax.jit
     def depths(pos, quat, q0, q1):
@@ -46,13 +44,7 @@ def measure(samples: int, dense: int, seed: int = 0, batch: int = 8192, substeps
     free, crossing, crossing_depth = 0, 0, []
     missed = {s: [] for s in substeps}
     for start in range(0, samples, batch):
-        n = min(batch, samples - start)
-        angle, gap = rng.uniform(-np.pi, np.pi, n), rng.uniform(0.5, 0.9, n)
-        pos = np.zeros((n, 2, 3), np.float32)
-        pos[:, 1, :2] = gap[:, None] * np.stack([np.cos(angle), np.sin(angle)], -1)
-        quat = np.asarray(yaw_quat(rng.uniform(-np.pi, np.pi, (n, 2))), np.float32)
-        q0 = np.clip(arm.home + rng.normal(0.0, 1.0, (n, 2, 6)), *arm.joint_range.T).astype(np.float32)
-        q1 = (q0 + rng.choice([-1.0, 1.0], (n, 2, 6)) * env.max_step).astype(np.float32)
+        _, pos, quat, q0, q1 = random_two_arm_steps(min(batch, samples - start), rng)
         d = np.asarray(depths(pos, quat, q0, q1))
         ends_free = (d[0] >= 0) & (d[-1] >= 0)
         crosses = ends_free & (d.min(0) < 0)

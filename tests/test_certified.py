@@ -3,6 +3,12 @@ re-check, and it flags the pass-throughs that the sampled sweep misses."""
 
 from __future__ import annotations
 
+import importlib.util
+import json
+import pathlib
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,11 +18,19 @@ from mjx_multiarm.env.reaching import ReachingEnv
 from mjx_multiarm.env.wrappers import TaskBank
 from mjx_multiarm.expert.solve import team_checker
 from mjx_multiarm.geometry.certified import certified_contacts, geom_reach
-from mjx_multiarm.geometry.collision import CONTACTS_ONLY, scene_contacts, swept_contacts
+from mjx_multiarm.geometry.collision import (
+    CONTACTS_ONLY,
+    scene_contacts,
+    swept_contacts,
+)
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import load_arm
-from mjx_multiarm.geometry.transforms import yaw_quat
+from mjx_multiarm.tasks.dataset import save_tasks
 from mjx_multiarm.tasks.types import take
+
+_spec = importlib.util.spec_from_file_location("common", pathlib.Path(__file__).parents[1] / "benchmarks" / "common.py")
+COMMON = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(COMMON)
 
 #: Configurations of the dense reference check per motion.
 DENSE = 256
@@ -76,16 +90,8 @@ def test_the_pass_through_the_sampled_sweep_misses_is_flagged():
 
 
 def _random_two_arm_steps(n: int, seed: int):
-    """Two-arm scenes (bases 0.5-0.9 m apart) and a full-speed step of every joint of both arms."""
-    env = ReachingEnv(2)
-    arm = env.scene.arm
-    rng = np.random.default_rng(seed)
-    angle, gap = rng.uniform(-np.pi, np.pi, n), rng.uniform(0.5, 0.9, n)
-    pos = np.zeros((n, 2, 3), np.float32)
-    pos[:, 1, :2] = gap[:, None] * np.stack([np.cos(angle), np.sin(angle)], -1)
-    quat = np.asarray(yaw_quat(rng.uniform(-np.pi, np.pi, (n, 2))), np.float32)
-    q0 = np.clip(arm.home + rng.normal(0.0, 1.0, (n, 2, 6)), *arm.joint_range.T).astype(np.float32)
-    q1 = (q0 + rng.choice([-1.0, 1.0], (n, 2, 6)) * env.max_step).astype(np.float32)
+    """benchmarks/common.py's two-arm full-speed steps, all arms active."""
+    env, pos, quat, q0, q1 = COMMON.random_two_arm_steps(n, np.random.default_rng(seed))
     return env, pos, quat, q0, q1, np.ones((n, 2), bool)
 
 
@@ -141,3 +147,18 @@ def test_the_planners_certified_check_agrees_with_the_dense_recheck():
     assert (~certified & ~dense & start_free).sum() <= 0.05 * (~dense & start_free).sum()
     p = PASS_THROUGH
     assert not team_checker(p["base_pos"], p["base_quat"], 0.05).steps_certified(np.stack([p["start"], p["end"]]), 0.0)
+
+
+@pytest.mark.slow
+def test_the_certified_check_benchmark_finds_no_contact(tmp_path, generated):
+    """benchmarks/certified_check.py at a small size: nothing certified is in contact, and no
+    executed step of the safe policy is."""
+    save_tasks(tmp_path / "tasks.npz", take(generated, generated.num_arms <= 3))
+    script = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "certified_check.py"
+    out = subprocess.run([sys.executable, str(script), "--random", "1024", "--dense", "32", "--tasks", str(tmp_path / "tasks.npz"),
+                          "--per-size", "2", "--json"], check=True, capture_output=True, text=True).stdout
+    report = json.loads(out.strip().splitlines()[-1])
+    assert report["random"]["motions_with_free_ends"] > 100
+    assert all(c["certified_in_contact"] == 0 and c["certified"] > 0 for c in report["random"]["checks"].values())
+    rows = report["rollouts"]["by_team_size"].values()
+    assert all(row["steps_in_contact"] == 0 and row["steps_checked"] > 0 for row in rows)

@@ -24,6 +24,12 @@ import numba
 import numpy as np
 
 from mjx_multiarm.geometry import compiled
+from mjx_multiarm.geometry.certified import (
+    MAX_EVALUATIONS,
+    SMALLEST_STEP,
+    geom_reach,
+    pair_tables,
+)
 from mjx_multiarm.geometry.compiled import (
     bounding_spheres,
     centre_distance2,
@@ -31,7 +37,6 @@ from mjx_multiarm.geometry.compiled import (
     ground_distance,
     pose_arm,
 )
-from mjx_multiarm.geometry.certified import MAX_EVALUATIONS, SMALLEST_STEP, geom_reach, pair_tables
 from mjx_multiarm.geometry.robot import NUM_JOINTS, load_arm
 from mjx_multiarm.geometry.scene import build_scene
 

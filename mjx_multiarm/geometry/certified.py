@@ -42,7 +42,12 @@ import mujoco
 import numpy as np
 from flax import struct
 
-from mjx_multiarm.geometry.collision import Contacts, ground_geoms, scene_contacts, self_and_ground_distances
+from mjx_multiarm.geometry.collision import (
+    Contacts,
+    ground_geoms,
+    scene_contacts,
+    self_and_ground_distances,
+)
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import NUM_JOINTS, ArmModel
 from mjx_multiarm.geometry.scene import Scene
