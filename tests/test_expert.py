@@ -108,6 +108,12 @@ def test_handover_plans_the_timed_out_tasks_from_where_they_ended(small_tasks, s
     np.testing.assert_array_equal(handed.collision, ended.collision)
     assert [int(handed.steps[i]) for i in range(3, 6)] == [10 + len(solved[i].deltas) for i in range(3, 6)]
     np.testing.assert_array_equal(handed.reached, np.where(handed.success, team, 0))
+    # The episode's limit holds for the policy's steps plus the plan's: a plan that would end past it fails.
+    shortest = min(len(solved[i].deltas) for i in range(3, 6))
+    for limit, solved_ones in ((10 + shortest - 1, 0), (10 + shortest, 1)):
+        capped, _ = birrt_handover(small_tasks, ended, final, PlannerConfig(time_limit=20), max_steps=limit)
+        assert capped.success[3:].sum() >= solved_ones and (capped.steps[3:][capped.success[3:]] <= limit).all()
+        assert capped.success[3:].sum() == 0 or solved_ones
     with pytest.raises(ValueError, match="must match"):
         birrt_handover(small_tasks, ended, final[:2])
 
