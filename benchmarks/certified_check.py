@@ -4,8 +4,8 @@ anything it certifies (issue 51).
 Two parts, each re-checking motions at ``--dense`` evenly spaced configurations (the start
 and end included) with the collision kernel (``swept_contacts``):
 
-- ``--random N``: N two-arm full-speed steps (benchmarks/swept_collision.py's sampler, both
-  ends free). Reports, for the environment's certified check (JAX,
+- ``--random N``: N two-arm full-speed steps (benchmarks/swept_collision.py's sampler) whose
+  ends are free. Reports, for the environment's certified check (JAX,
   ``mjx_multiarm.geometry.certified``) and the expert's (numba, pair by pair,
   ``CollisionChecker.steps_certified``): the motions it certifies, how many of those the
   dense check finds in contact (must be 0), how many it flags that the dense check finds
@@ -31,8 +31,8 @@ from common import cpu_name, random_two_arm_steps
 
 from mjx_multiarm.env.reaching import ReachingEnv
 from mjx_multiarm.env.wrappers import TaskBank
-from mjx_multiarm.expert.solve import team_checker
 from mjx_multiarm.geometry.certified import certified_contacts
+from mjx_multiarm.geometry.checker import team_checker
 from mjx_multiarm.geometry.collision import (
     CONTACTS_ONLY,
     scene_contacts,
@@ -55,30 +55,46 @@ def _dense_check(scene, dense: int):
     return collided
 
 
-def check_random(samples: int, dense: int, seed: int = 0, batch: int = 4096) -> dict:
-    """Part one of the module doc."""
-    rng = np.random.default_rng(seed)
-    scene = ReachingEnv(2).scene
+def _free_end_motions(motions: int, chunk: int, rng: np.random.Generator, free_at):
+    """Yield ``(steps drawn so far, [pos, quat, q0, q1])``: ``motions`` random two-arm steps
+    whose ends are free, in parts of at most ``chunk`` (the others are drawn and dropped)."""
+    pool, samples, left = None, 0, motions
+    while left > 0:
+        _, *drawn = random_two_arm_steps(chunk, rng)
+        samples += chunk
+        active = np.ones(drawn[2].shape[:-1], bool)
+        free = np.asarray(free_at(drawn[0], drawn[1], drawn[2], active) & free_at(drawn[0], drawn[1], drawn[3], active))
+        pool = [x[free] if pool is None else np.concatenate([old, x[free]]) for old, x in zip(pool or drawn, drawn)]
+        while left > 0 and len(pool[0]) >= min(chunk, left):
+            size = min(chunk, left)
+            yield samples, [x[:size] for x in pool]
+            pool, left = [x[size:] for x in pool], left - size
+
+
+def check_random(motions: int, dense: int, seed: int = 0, chunk: int = 2048) -> dict:
+    """Part one of the module doc, on ``motions`` random steps with free ends."""
+    scene, chunk = ReachingEnv(2).scene, min(chunk, motions)
     dense_collided = _dense_check(scene, dense)
     certify = jax.jit(lambda *a: certified_contacts(scene, *a))
     free_at = jax.jit(lambda pos, quat, q, active: ~scene_contacts(scene, pos, quat, q, active).collided.any(-1))
     counts = {name: {"certified": 0, "certified_in_contact": 0, "flagged_free": 0} for name in ("jax", "numba")}
-    motions, in_contact, evaluations = 0, 0, []
-    for start in range(0, samples, batch):
-        _, pos, quat, q0, q1 = random_two_arm_steps(min(batch, samples - start), rng)
-        active = np.ones(q0.shape[:-1], bool)
-        ends_free = np.asarray(free_at(pos, quat, q0, active) & free_at(pos, quat, q1, active))
-        touches = np.asarray(dense_collided(pos, quat, q0, q1, active))[ends_free]
-        verdict = certify(pos, quat, q0, q1, active)
-        free = {"jax": ~np.asarray(verdict.collided.any(-1))[ends_free],
+    samples, in_contact, evaluations = 0, 0, []
+    active = np.ones((chunk, 2), bool)
+    for samples, part in _free_end_motions(motions, chunk, np.random.default_rng(seed), free_at):
+        size = len(part[0])
+        padded = [np.concatenate([x, np.repeat(x[:1], chunk - size, axis=0)]) for x in part]  # one compiled shape
+        touches = np.asarray(dense_collided(*padded, active))[:size]
+        verdict = certify(*padded, active)
+        free = {"jax": ~np.asarray(verdict.collided.any(-1))[:size],
                 "numba": np.array([team_checker(p, q, 0.05).steps_certified(np.stack([a, b]), 0.0)
-                                   for p, q, a, b in zip(pos[ends_free], quat[ends_free], q0[ends_free], q1[ends_free])])}
+                                   for p, q, a, b in zip(*part)])}
         for name, ok in free.items():
             counts[name]["certified"] += int(ok.sum())
             counts[name]["certified_in_contact"] += int((ok & touches).sum())
             counts[name]["flagged_free"] += int((~ok & ~touches).sum())
-        motions, in_contact = motions + int(ends_free.sum()), in_contact + int(touches.sum())
-        evaluations.append(np.asarray(verdict.evaluations)[ends_free])
+        in_contact += int(touches.sum())
+        evaluations.append(np.asarray(verdict.evaluations)[:size])
+        print(f"  {sum(map(len, evaluations)):,} of {motions:,} motions re-checked", flush=True)
     evaluations = np.concatenate(evaluations)
     return {"samples": samples, "motions_with_free_ends": motions, "dense": dense, "dense_in_contact": in_contact,
             "checks": counts, "jax_evaluations_mean": float(evaluations.mean()),
@@ -126,7 +142,7 @@ def check_rollouts(tasks_path: pathlib.Path, checkpoint: pathlib.Path | None, pe
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--random", type=int, default=0, help="random two-arm full-speed steps to re-check")
+    parser.add_argument("--random", type=int, default=0, help="random two-arm full-speed steps with free ends to re-check")
     parser.add_argument("--tasks", type=pathlib.Path, help="a task file: re-check the safe policy's executed steps")
     parser.add_argument("--checkpoint", type=pathlib.Path, help="policy file (default: the shipped policy)")
     parser.add_argument("--per-size", type=int, default=32, help="tasks per team size of --tasks")

@@ -9,7 +9,7 @@ same scenes for the same ``--seed``.
 - **Reference**: ``--record FILE`` stores every arm's verdict (``scene_contacts(...).collided``)
   with the seed; a later run with ``--reference FILE`` regenerates the scenes and counts the
   arms whose verdict differs. A kernel change that keeps the model must count 0.
-- **Numba checker** (:class:`mjx_multiarm.expert.checker.CollisionChecker`, an independent
+- **Numba checker** (:class:`mjx_multiarm.geometry.checker.CollisionChecker`, an independent
   float64 implementation): per scene, whether any arm collides. Scenes whose smallest
   kernel distance is within ``1e-5`` m of contact are left out (float32 rounding) and counted.
 - ``--max-distance 0`` asks the kernel for contacts only (``CONTACTS_ONLY``, what the
@@ -35,8 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 from common import cpu_name
 
-from mjx_multiarm.expert.checker import CollisionChecker
 from mjx_multiarm.files import atomic_write
+from mjx_multiarm.geometry.checker import CollisionChecker
 from mjx_multiarm.geometry.collision import scene_contacts
 from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.geometry.scene import build_scene

@@ -26,11 +26,11 @@ import numpy as np
 from mjx_multiarm.cli import parse_arms
 from mjx_multiarm.env.reaching import EVAL_TOLERANCE
 from mjx_multiarm.env.wrappers import TaskBank, make_episodes
-from mjx_multiarm.expert.solve import straight_motion_free
 from mjx_multiarm.geometry.collision import scene_contacts
 from mjx_multiarm.geometry.transforms import quat_angle
 from mjx_multiarm.planner.policy import Planner
 from mjx_multiarm.tasks.dataset import load_tasks
+from mjx_multiarm.tasks.select import straight_motion_free
 from mjx_multiarm.tasks.types import take
 
 

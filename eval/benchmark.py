@@ -18,7 +18,12 @@ collisions, and its failures are timeouts (deadlocks). ``--handover`` hands ever
 policy leaves unfinished to BiRRT from where its episode ended
 (:mod:`mjx_multiarm.planner.handover`: a hybrid planner; its steps are the policy's plus the
 plan's, at most 500 in all, and ``planned`` / ``mean_plan_s`` / ``max_plan_s`` report the
-handed-over plans). ``longest_success_steps`` is the longest successful trajectory.
+handed-over plans); ``--stall-steps K`` hands a team over as soon as it stops making
+progress (a deadlock detector) rather than after ``--episode-steps``. BiRRT's plans, alone
+or handed over, count only within the episode's 500 steps. ``longest_success_steps`` is the
+longest successful trajectory, ``mean_task_s`` the wall time per task (compilation
+included); ``--time-limit`` with a raised ``--iterations`` runs BiRRT at another planner's
+time per task.
 
 Writes ``static.md`` / ``static.csv`` (success by team size x difficulty bin, with the
 paper's numbers), ``dynamic.md`` / ``dynamic.csv`` (by target speed), and
@@ -49,7 +54,7 @@ from mjx_multiarm.expert.replan import replan_episode
 from mjx_multiarm.expert.solve import solve_task
 from mjx_multiarm.files import atomic_write
 from mjx_multiarm.planner.handover import birrt_handover
-from mjx_multiarm.planner.policy import SHIPPED_POLICY, Planner
+from mjx_multiarm.planner.policy import Planner
 from mjx_multiarm.render import (
     RenderingUnavailable,
     make_renderer,
@@ -81,32 +86,25 @@ def generated_test_tasks(per_team: int, arms: tuple[int, ...], seed: int) -> Tas
     return concatenate([generate_chunk(spec, c) for c in range(spec.num_chunks)])
 
 
-def load_planner(checkpoint: pathlib.Path | None, neighbour_radius: float | None = None, safe: bool = False) -> Planner:
-    """The planner of a policy file, or of a run directory's ``policy.npz``; ``neighbour_radius``
-    (m) replaces the radius the file records (0 blinds the policy to its neighbours); ``safe``
-    shields every team step."""
-    path = SHIPPED_POLICY if checkpoint is None else checkpoint
-    if path.is_dir():
-        path = path / "policy.npz"
-    return Planner.load(path, neighbour_radius, safe)
-
-
 def policy_outcomes(planner: Planner, tasks: Tasks, dynamic: bool, episode_steps: int, batch: int = 256,
-                    handover: PlannerConfig | None = None, seed: int = 0) -> tuple[Outcomes, np.ndarray]:
+                    handover: PlannerConfig | None = None, seed: int = 0, stall_steps: int = 0,
+                    max_steps: int = 500) -> tuple[Outcomes, np.ndarray]:
     """Deterministic episodes of every task (in ``tasks`` order), bucketed by team size:
     (outcomes, seconds of BiRRT planning per task, NaN where none). With ``handover`` the tasks that time
-    out are handed to BiRRT from where they ended (:mod:`mjx_multiarm.planner.handover`)."""
+    out are handed to BiRRT from where they ended (:mod:`mjx_multiarm.planner.handover`), the
+    policy's steps plus the plan's within ``max_steps``; ``stall_steps`` ends an episode whose
+    team stopped making progress (:func:`~mjx_multiarm.env.wrappers.make_episodes`)."""
     team = tasks.num_arms
     parts, seconds, order = [], [], []
     for size in sorted(set(team.tolist())):
         rows = np.flatnonzero(team == size)
         env = planner.environment(size, max_steps=episode_steps, dynamic_targets=dynamic, tolerance=EVAL_TOLERANCE)
         subset = take(tasks, rows)
-        final = final_states(make_episodes(env, planner.policy_fn(), episode_steps), planner.params,
+        final = final_states(make_episodes(env, planner.policy_fn(), episode_steps, stall_steps), planner.params,
                              TaskBank.from_tasks(subset, size), batch)
         outcomes, plan_s = Outcomes.of(final), np.full(len(rows), np.nan)
         if handover is not None:
-            outcomes, plan_s = birrt_handover(subset, outcomes, final.joints, handover, seed)
+            outcomes, plan_s = birrt_handover(subset, outcomes, final.joints, handover, seed, max_steps)
         parts.append(outcomes)
         seconds.append(plan_s)
         order.append(rows)
@@ -129,7 +127,8 @@ def birrt_outcomes(tasks: Tasks, dynamic: bool, episode_steps: int, config: Plan
             success[i], collision[i], steps[i], plan_s[i] = result.success, result.collided, result.steps, result.plan_s
         else:
             result = solve_task(tasks, i, config, seed)
-            success[i], steps[i], plan_s[i] = result.status == SOLVED, len(result.deltas), result.plan_s
+            success[i] = result.status == SOLVED and len(result.deltas) <= episode_steps  # the episode's limit holds for plans too
+            steps[i], plan_s[i] = len(result.deltas), result.plan_s
         if progress:
             progress.update(i + 1, i + 1, f"{int(success[: i + 1].sum())} succeeded")
     return Outcomes(team, success, collision, ~success & ~collision, steps, np.where(success, team, 0)), plan_s
@@ -219,7 +218,12 @@ def _parser() -> argparse.ArgumentParser:
                         help="hand every task the policy does not finish (timeout) to BiRRT from where its episode ended, "
                              "static targets only (a hybrid planner; use with --safe, whose failures are deadlocks)")
     parser.add_argument("--episode-steps", type=int, default=500, help="control steps per episode (default 500, the paper's)")
+    parser.add_argument("--stall-steps", type=int, default=0, metavar="K",
+                        help="with --handover: hand a team over as soon as its summed end-effector distance to its targets "
+                             "has not shrunk by 1 cm in K steps (a deadlock detector; 0: after --episode-steps)")
     parser.add_argument("--iterations", type=int, default=PlannerConfig.iterations, help="BiRRT iteration cap per plan")
+    parser.add_argument("--time-limit", type=float, default=PlannerConfig.time_limit,
+                        help="BiRRT wall-clock cap per task (s; with a raised --iterations: BiRRT at a hybrid's time per task)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=pathlib.Path, help="output directory (default runs/benchmark-<planner>-<time>)")
     parser.add_argument("--render", type=int, default=0, metavar="N",
@@ -249,9 +253,28 @@ def render_episodes(planner: Planner, tasks: Tasks, count: int, episode_steps: i
         print(f"render: {out / 'render' / name} ({len(frames)} frames)", file=sys.stderr)
 
 
+def _check_values(args: argparse.Namespace) -> None:
+    """ValueError naming the first flag whose value cannot run: counts below 1, an ``--out``
+    that is a file or already holds a benchmark's results."""
+    for flag, value, least in (("--episode-steps", args.episode_steps, 1), ("--iterations", args.iterations, 1),
+                               ("--per-team", args.per_team, 1), ("--render", args.render, 0), ("--stall-steps", args.stall_steps, 0)):
+        if value < least:
+            raise ValueError(f"{flag} must be >= {least}, got {value}")
+    if not args.time_limit > 0:
+        raise ValueError(f"--time-limit must be > 0 s, got {args.time_limit}")
+    if args.stall_steps and not args.handover:
+        raise ValueError("--stall-steps hands stalled teams over: it needs --handover")
+    if args.out is not None and args.out.exists():
+        if not args.out.is_dir():
+            raise ValueError(f"--out {args.out} is a file; give a directory for the results")
+        if (args.out / "summary.json").exists():
+            raise ValueError(f"--out {args.out} already holds a benchmark's results (summary.json); give another directory")
+
+
 def main(argv=None) -> None:
     args = _parser().parse_args(argv)
     try:
+        _check_values(args)
         team_sizes = args.arms or "1-10"
         arms = parse_arms(team_sizes)
         if args.tasks:
@@ -267,7 +290,7 @@ def main(argv=None) -> None:
             raise ValueError("--neighbour-radius, --safe and --handover apply to --planner policy only")
         if args.handover and args.mode != "static":
             raise ValueError("--handover plans to fixed goals: it needs --mode static")
-        planner = load_planner(args.checkpoint, args.neighbour_radius, args.safe) if args.planner == "policy" else None
+        planner = Planner.load(args.checkpoint, args.neighbour_radius, args.safe) if args.planner == "policy" else None
     except (ValueError, FileNotFoundError, argparse.ArgumentTypeError) as error:
         sys.exit(f"error: {error}")
     out = args.out or pathlib.Path("runs") / f"benchmark-{args.planner}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -287,25 +310,28 @@ def main(argv=None) -> None:
         report["neighbour_radius"] = planner.env_config.neighbour_radius
         report["safe"] = planner.env_config.safe
         report["handover"] = args.handover
+        report["stall_steps"] = args.stall_steps
     for mode in modes:
         subset = tasks if mode == "static" else take(tasks, tasks.has_dynamic_mode)
         clock = time.perf_counter()
         if planner is not None:
             print(f"{mode}: {subset.num_tasks} tasks, policy rollouts...", file=sys.stderr)
-            config = PlannerConfig(iterations=args.iterations) if args.handover else None
+            config = PlannerConfig(iterations=args.iterations, time_limit=args.time_limit) if args.handover else None
             outcomes, plan_s = policy_outcomes(planner, subset, mode == "dynamic", args.episode_steps, handover=config,
-                                               seed=args.seed)
+                                               seed=args.seed, stall_steps=args.stall_steps)
             if not args.handover:
                 plan_s = None
         else:
             progress = Progress(subset.num_tasks, f"{mode} BiRRT")
             outcomes, plan_s = birrt_outcomes(subset, mode == "dynamic", args.episode_steps,
-                                              PlannerConfig(iterations=args.iterations), args.seed, progress)
+                                              PlannerConfig(iterations=args.iterations, time_limit=args.time_limit), args.seed,
+                                              progress)
             progress.close()
         bins, names = ((bin_index(subset.difficulty, DIFFICULTY_BINS), list(DIFFICULTY_BINS)) if mode == "static"
                        else (bin_index(subset.speed, SPEED_BINS), list(SPEED_BINS)))
         result = summary(outcomes, bins, names)
         result["seconds"] = time.perf_counter() - clock
+        result["mean_task_s"] = result["seconds"] / subset.num_tasks  # wall time to a trajectory, compilation included
         if plan_s is not None:
             planned = ~np.isnan(plan_s)
             result["planned"] = int(planned.sum())

@@ -51,10 +51,10 @@ def measure(checkpoint: pathlib.Path | None, neighbours: list[int], calls: int) 
     import jax
     import numpy as np
 
-    from eval.benchmark import load_planner
     from mjx_multiarm.env.observation import ELEMENT_SIZE
+    from mjx_multiarm.planner.policy import Planner
 
-    planner, safe = load_planner(checkpoint), load_planner(checkpoint, safe=True)
+    planner, safe = Planner.load(checkpoint), Planner.load(checkpoint, safe=True)
     actor = planner.policy.actor
     forward = jax.jit(lambda obs, mask: actor(obs, mask)[0])
     rng = np.random.default_rng(0)

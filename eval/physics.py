@@ -109,7 +109,8 @@ def physics_outcomes(planner, tasks: Tasks, episode_steps: int = 500) -> dict:
 
 
 def main(argv=None) -> None:
-    from eval.benchmark import load_planner, policy_outcomes
+    from eval.benchmark import policy_outcomes
+    from mjx_multiarm.planner.policy import Planner
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tasks", type=pathlib.Path, required=True, help="task dataset .npz")
@@ -123,7 +124,7 @@ def main(argv=None) -> None:
     if not len(rows):
         parser.error(f"--tasks {args.tasks} has no {args.arms}-arm tasks")
     team = jax.tree.map(lambda x: np.asarray(x)[rows][:, : args.arms] if np.ndim(x) >= 2 else np.asarray(x)[rows], tasks)
-    planner = load_planner(args.checkpoint)
+    planner = Planner.load(args.checkpoint)
     start = time.perf_counter()
     physics = physics_outcomes(planner, team, args.episode_steps)
     physics["seconds"] = time.perf_counter() - start

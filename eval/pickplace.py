@@ -67,9 +67,9 @@ VALID_FAILURES = ("arm-arm", "arm-floor", "outside-bin")
 def _policy_step(checkpoint: pathlib.Path | None, safe: bool = False):
     """The team step of the policy (once per process: the backends' compilations are reused
     by every batch); ``safe`` shields it (:mod:`mjx_multiarm.env.shield`)."""
-    from eval.benchmark import load_planner
+    from mjx_multiarm.planner.policy import Planner
 
-    return load_planner(checkpoint, safe=safe).batched(4)
+    return Planner.load(checkpoint, safe=safe).batched(4)
 
 
 def _run_mujoco_chunk(checkpoint, safe: bool, plans: RunPlan, max_steps: int) -> list[dict]:

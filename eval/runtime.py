@@ -96,14 +96,15 @@ def main(argv=None) -> None:
         pin_threads(args.threads)
         import numpy as np
 
-        from eval.benchmark import birrt_outcomes, generated_test_tasks, load_planner
+        from eval.benchmark import birrt_outcomes, generated_test_tasks
         from mjx_multiarm.cli import parse_arms
         from mjx_multiarm.expert.planner import PlannerConfig
         from mjx_multiarm.files import atomic_write
+        from mjx_multiarm.planner.policy import Planner
         from mjx_multiarm.tasks.dataset import load_tasks
 
         tasks = load_tasks(args.tasks)[0] if args.tasks else generated_test_tasks(args.per_team, parse_arms(args.arms), args.seed + 30_000)
-        planner = load_planner(args.checkpoint)
+        planner = Planner.load(args.checkpoint)
     except (ValueError, FileNotFoundError, argparse.ArgumentTypeError) as error:
         sys.exit(f"error: {error}")
     print(f"{tasks.num_tasks} tasks: policy rollouts...", file=sys.stderr)

@@ -1,4 +1,4 @@
-"""Command-line helpers shared by every entry point: team-size ranges and a progress bar."""
+"""Command-line helpers shared by every entry point: team-size ranges and the one progress line."""
 
 from __future__ import annotations
 
@@ -8,10 +8,13 @@ import time
 
 
 class Progress:
-    """A one-line progress bar on stderr: done/total, rate, ETA, and a note."""
+    """The one progress line on stderr, rewritten in place (at most every ``interval`` s), with
+    log messages printed on lines of their own: :meth:`update` draws a bar of ``done`` of
+    ``total`` with its rate and ETA, :meth:`show` any text (training's rows)."""
 
-    def __init__(self, total: int, unit: str):
-        self.total, self.unit, self.start = total, unit, time.perf_counter()
+    def __init__(self, total: int = 0, unit: str = "", interval: float = 0.0):
+        self.total, self.unit, self.interval = total, unit, interval
+        self.start, self.last, self.open = time.perf_counter(), -float("inf"), False
 
     def update(self, done: int, new: int, note: str = "") -> None:
         """``done`` of ``total`` finished, ``new`` of them by this run (the rate counts those)."""
@@ -19,10 +22,26 @@ class Progress:
         rate = new / elapsed if elapsed > 0 and new else 0.0
         eta = (self.total - done) / rate if rate else float("nan")
         bar = "#" * int(30 * done / max(self.total, 1))
-        print(f"\r[{bar:<30}] {done}/{self.total} {self.unit} {rate:,.1f}/s ETA {eta:,.0f}s {note} ", end="", file=sys.stderr, flush=True)
+        self.show(f"[{bar:<30}] {done}/{self.total} {self.unit} {rate:,.1f}/s ETA {eta:,.0f}s {note}")
+
+    def show(self, text: str) -> None:
+        """Rewrite the line with ``text`` (skipped within ``interval`` of the last time)."""
+        now = time.perf_counter()
+        if now - self.last < self.interval:
+            return
+        self.last, self.open = now, True
+        print(f"\r{text} ", end="", file=sys.stderr, flush=True)
+
+    def log(self, message: str) -> None:
+        """A message on a line of its own, below the progress line."""
+        self.close()
+        print(message, file=sys.stderr, flush=True)
 
     def close(self) -> None:
-        print(file=sys.stderr)
+        """End the progress line."""
+        if self.open:
+            print(file=sys.stderr)
+            self.open = False
 
 
 def parse_arms(text: str) -> tuple[int, ...]:

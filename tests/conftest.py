@@ -1,4 +1,5 @@
-"""Shared fixtures: random multi-arm scenes and the optional reference data."""
+"""Shared fixtures and helpers: random multi-arm scenes, hand-made tasks, jitted rollouts, the
+optional reference data."""
 
 from __future__ import annotations
 
@@ -6,12 +7,19 @@ import os
 import pathlib
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import settings
 
+from mjx_multiarm.env.reaching import ReachingEnv
+from mjx_multiarm.env.scripted import ik_actions
+from mjx_multiarm.geometry.evaluate import base_pose_arrays
+from mjx_multiarm.geometry.ik import solve_positions
+from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
+from mjx_multiarm.tasks.types import Tasks
 
 # No per-example deadline for property tests: eager JAX compiles on the first call of each
 # shape, which takes seconds on a loaded 2-core machine; speed is measured by benchmarks.
@@ -73,3 +81,47 @@ def random_padded_scenes(rng: np.random.Generator, count: int, max_arms: int, sp
 def generated():
     """256 dynamic-capable tasks of 1-10 arms in 10 slots (one chunk, seed 7)."""
     return generate_chunk(GenerationSpec(count=256, arm_counts=tuple(range(1, 11)), mode="dynamic", seed=7), 0)
+
+
+def make_tasks(bases, start, goal) -> Tasks:
+    """Numpy tasks from planar bases [N, A, 3] and joints [N, A, 6] (all slots active)."""
+    arm = load_arm()
+    pos, quat = base_pose_arrays(bases)
+    frames = forward_kinematics(arm, pos, quat, jnp.asarray(goal, jnp.float32))
+    n, a = bases.shape[:2]
+    return Tasks(
+        task_id=np.arange(n, dtype=np.int64), active=np.ones((n, a), bool), base_pos=pos, base_quat=quat,
+        start_joints=start, goal_joints=goal, dynamic_start_joints=goal,
+        target_pos=np.asarray(frames.ee_pos, np.float64), target_quat=np.asarray(frames.ee_quat, np.float64),
+        difficulty=np.zeros(n), speed=np.zeros(n),
+    )
+
+
+def rollout(env: ReachingEnv, steps: int, policy=None):
+    """jit(vmap) rollout from reset: (final states, stacked stepped states, actions)."""
+    policy = policy or (lambda state: ik_actions(env, state))
+
+    @jax.jit
+    def run(tasks, tolerance):
+        start = jax.vmap(lambda task: env.reset(None, task, tolerance))(tasks)
+
+        def body(state, _):
+            actions = jax.vmap(policy)(state)
+            state = jax.vmap(env.step)(state, actions)
+            return state, (state, actions)
+
+        final, (states, actions) = jax.lax.scan(body, start, None, steps)
+        return final, states, actions
+
+    return run
+
+
+def facing_pair():
+    """Two arms 0.8 m apart facing each other, each driven to a point past the other's target."""
+    arm = load_arm()
+    bases = np.array([[[0.0, 0.0, 0.0], [0.8, 0.0, np.pi]]])
+    goal, error = solve_positions(arm, jnp.array([[0.55, 0.0, 0.35]]), jnp.asarray(arm.home[None], jnp.float32), iterations=80)
+    assert float(error[0]) < 1e-3
+    goal = np.repeat(np.asarray(goal, np.float64)[None], 2, axis=1)
+    start = np.repeat(arm.home[None, None], 2, axis=1)
+    return make_tasks(bases, start, goal)

@@ -16,8 +16,8 @@ import pytest
 
 from mjx_multiarm.env.reaching import ReachingEnv
 from mjx_multiarm.env.wrappers import TaskBank
-from mjx_multiarm.expert.solve import team_checker
 from mjx_multiarm.geometry.certified import certified_contacts, geom_reach
+from mjx_multiarm.geometry.checker import team_checker
 from mjx_multiarm.geometry.collision import (
     CONTACTS_ONLY,
     scene_contacts,
@@ -155,10 +155,10 @@ def test_the_certified_check_benchmark_finds_no_contact(tmp_path, generated):
     executed step of the safe policy is."""
     save_tasks(tmp_path / "tasks.npz", take(generated, generated.num_arms <= 3))
     script = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "certified_check.py"
-    out = subprocess.run([sys.executable, str(script), "--random", "1024", "--dense", "32", "--tasks", str(tmp_path / "tasks.npz"),
+    out = subprocess.run([sys.executable, str(script), "--random", "256", "--dense", "32", "--tasks", str(tmp_path / "tasks.npz"),
                           "--per-size", "2", "--json"], check=True, capture_output=True, text=True).stdout
     report = json.loads(out.strip().splitlines()[-1])
-    assert report["random"]["motions_with_free_ends"] > 100
+    assert report["random"]["motions_with_free_ends"] == 256 < report["random"]["samples"]
     assert all(c["certified_in_contact"] == 0 and c["certified"] > 0 for c in report["random"]["checks"].values())
     rows = report["rollouts"]["by_team_size"].values()
     assert all(row["steps_in_contact"] == 0 and row["steps_checked"] > 0 for row in rows)

@@ -6,14 +6,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import random_joints
+from conftest import facing_pair, make_tasks, random_joints, rollout
 
 from mjx_multiarm.env.reaching import CONTROL_PERIOD, EnvConfig, ReachingEnv
 from mjx_multiarm.env.scripted import ik_actions
-from mjx_multiarm.env.wrappers import AutoReset, TaskBank, replay_actions
+from mjx_multiarm.env.wrappers import AutoReset, TaskBank, make_episodes, replay_actions
 from mjx_multiarm.geometry.collision import scene_contacts
 from mjx_multiarm.geometry.evaluate import base_pose_arrays
-from mjx_multiarm.geometry.ik import solve_positions
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.geometry.transforms import quat_mul, yaw_quat
@@ -25,37 +24,6 @@ def teams_of(tasks: Tasks, arms: int, slots: int) -> TaskBank:
     return TaskBank.from_tasks(take(tasks, tasks.num_arms == arms), slots)
 
 
-def make_tasks(bases, start, goal) -> Tasks:
-    """Numpy tasks from planar bases [N, A, 3] and joints [N, A, 6] (all slots active)."""
-    arm = load_arm()
-    pos, quat = base_pose_arrays(bases)
-    frames = forward_kinematics(arm, pos, quat, jnp.asarray(goal, jnp.float32))
-    n, a = bases.shape[:2]
-    return Tasks(
-        task_id=np.arange(n, dtype=np.int64), active=np.ones((n, a), bool), base_pos=pos, base_quat=quat,
-        start_joints=start, goal_joints=goal, dynamic_start_joints=goal,
-        target_pos=np.asarray(frames.ee_pos, np.float64), target_quat=np.asarray(frames.ee_quat, np.float64),
-        difficulty=np.zeros(n), speed=np.zeros(n),
-    )
-
-
-def rollout(env: ReachingEnv, steps: int, policy=None):
-    """jit(vmap) rollout from reset: (final states, stacked stepped states, actions)."""
-    policy = policy or (lambda state: ik_actions(env, state))
-
-    @jax.jit
-    def run(tasks, tolerance):
-        start = jax.vmap(lambda task: env.reset(None, task, tolerance))(tasks)
-
-        def body(state, _):
-            actions = jax.vmap(policy)(state)
-            state = jax.vmap(env.step)(state, actions)
-            return state, (state, actions)
-
-        final, (states, actions) = jax.lax.scan(body, start, None, steps)
-        return final, states, actions
-
-    return run
 
 
 @pytest.fixture(scope="module")
@@ -248,20 +216,9 @@ def test_observation_self_last_and_radius(generated):
         assert not mask[~active].any()
 
 
-def _facing_pair():
-    """Two arms 0.8 m apart facing each other, each driven to a point past the other's target."""
-    arm = load_arm()
-    bases = np.array([[[0.0, 0.0, 0.0], [0.8, 0.0, np.pi]]])
-    goal, error = solve_positions(arm, jnp.array([[0.55, 0.0, 0.35]]), jnp.asarray(arm.home[None], jnp.float32), iterations=80)
-    assert float(error[0]) < 1e-3
-    goal = np.repeat(np.asarray(goal, np.float64)[None], 2, axis=1)
-    start = np.repeat(arm.home[None, None], 2, axis=1)
-    return make_tasks(bases, start, goal)
-
-
 def test_arms_driven_into_each_other_collide():
     env = ReachingEnv(2, EnvConfig(max_steps=120))
-    bank = TaskBank.from_tasks(_facing_pair(), 2)
+    bank = TaskBank.from_tasks(facing_pair(), 2)
     final, states, _ = rollout(env, 120)(bank.tasks, jnp.asarray([0.02, 0.1]))
     assert bool(final.done[0]) and not bool(final.success[0]) and not bool(final.truncated[0])
     hit = int(np.argmax(np.asarray(states.collided).any(-1)[:, 0]))
@@ -285,7 +242,7 @@ def test_restoring_colliding_arms_keeps_the_episode_going():
     step limit; every colliding step puts the colliding arms back where they were, pays the
     penalty, never counts as a success, and the arms never rest in contact."""
     env = ReachingEnv(2, EnvConfig(max_steps=120, end_on_collision=False))
-    bank = TaskBank.from_tasks(_facing_pair(), 2)
+    bank = TaskBank.from_tasks(facing_pair(), 2)
     final, states, _ = rollout(env, 120)(bank.tasks, jnp.asarray([0.02, 0.1]))
     collided = np.asarray(states.collided[:, 0])  # [T, 2]
     assert collided.any(-1).sum() >= 2  # they keep pushing into each other
@@ -303,7 +260,7 @@ def test_collisions_end_once_the_tolerance_reaches_the_threshold():
     """collisions_end_at: restored collisions become the paper's rule (the episode ends at the
     first colliding step, arms not put back) for episodes whose position tolerance is at most
     the threshold, and stay restored for looser ones."""
-    bank = TaskBank.from_tasks(_facing_pair(), 2)
+    bank = TaskBank.from_tasks(facing_pair(), 2)
     env = ReachingEnv(2, EnvConfig(max_steps=120, end_on_collision=False, collisions_end_at=0.02))
     ending = ReachingEnv(2, EnvConfig(max_steps=120))
     final, states, _ = rollout(env, 120)(bank.tasks, jnp.asarray([0.02, 0.1]))
@@ -394,6 +351,22 @@ def test_auto_reset_walks_the_bank_and_counts_episodes(generated):
     assert {k: v["episodes"] for k, v in summary["by_team_size"].items()} == {int(t): int((teams == t).sum()) for t in set(teams)}
     uniform = jax.jit(AutoReset(env, bank).reset, static_argnums=1)(jax.random.key(1), 64)
     assert set(np.asarray(uniform.env.task.task_id).tolist()) == set(range(5))
+
+
+def test_episodes_of_stalled_teams_end_early_as_timeouts(generated):
+    """``make_episodes(stall_steps=K)``: a team that stops getting closer to its targets ends
+    after K steps, as a timeout; one that keeps closing in (IK) ends as without it."""
+    env = ReachingEnv(1, EnvConfig(max_steps=60))
+    bank = teams_of(generated, 1, 1)
+    still = lambda states, params: jnp.zeros(states.joints.shape)  # noqa: E731
+    ik = lambda states, params: jax.vmap(lambda s: ik_actions(env, s))(states)  # noqa: E731
+    final = make_episodes(env, still, 60, stall_steps=5)(bank.tasks, None)
+    assert np.asarray(final.truncated).all() and (np.asarray(final.step) == 5).all()
+    assert (np.asarray(make_episodes(env, still, 60)(bank.tasks, None).step) == 60).all()
+    plain, stalled = (jax.device_get(make_episodes(env, ik, 60, k)(bank.tasks, None)) for k in (0, 10))
+    assert np.asarray(plain.success).any()
+    np.testing.assert_array_equal(stalled.success, plain.success)
+    np.testing.assert_array_equal(np.where(plain.success, stalled.step, 0), np.where(plain.success, plain.step, 0))
 
 
 def test_replaying_recorded_actions_reproduces_the_episode(scripted, env1):

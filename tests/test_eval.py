@@ -84,11 +84,37 @@ def test_benchmark_bad_checkpoints(files, tmp_path):
         benchmark.main(["--checkpoint", str(tmp_path / "bad.npz"), "--tasks", str(files / "tasks.npz")])
 
 
+@pytest.mark.parametrize("flags, message", [
+    (["--episode-steps", "0"], "--episode-steps must be >= 1, got 0"),
+    (["--planner", "birrt", "--iterations", "0"], "--iterations must be >= 1, got 0"),
+    (["--per-team", "0"], "--per-team must be >= 1, got 0"),
+    (["--render", "-1"], "--render must be >= 0, got -1"),
+])
+def test_benchmark_refuses_values_that_cannot_run(files, flags, message):
+    with pytest.raises(SystemExit, match=message):
+        benchmark.main(["--checkpoint", str(files / "policy.npz"), *flags])
+
+
+def test_benchmark_refuses_an_out_that_is_a_file_or_holds_results_and_an_empty_task_file(files, tmp_path):
+    common = ["--checkpoint", str(files / "policy.npz"), "--tasks", str(files / "tasks.npz")]
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(SystemExit, match="is a file; give a directory"):
+        benchmark.main([*common, "--out", str(tmp_path / "file")])
+    (tmp_path / "done").mkdir()
+    (tmp_path / "done" / "summary.json").write_text("{}")
+    with pytest.raises(SystemExit, match="already holds a benchmark's results"):
+        benchmark.main([*common, "--out", str(tmp_path / "done")])
+    with np.load(files / "tasks.npz") as data:  # a dataset file with every field but no task
+        np.savez(tmp_path / "empty.npz", **{k: data[k][:0] if data[k].ndim else data[k] for k in data.files})
+    with pytest.raises(SystemExit, match="holds no tasks"):
+        benchmark.main(["--checkpoint", str(files / "policy.npz"), "--tasks", str(tmp_path / "empty.npz")])
+
+
 def test_benchmark_neighbour_radius_overrides_the_policy_file(files, monkeypatch):
     tasks = TaskBank.from_tasks(generate_chunk(GenerationSpec(count=4, arm_counts=(2,), seed=5, max_arms=2), 0), 2).tasks
     visible = {}
     for radius in (None, 0.0):  # the file records ReachingEnv(2)'s radius, 1.7 m
-        planner = benchmark.load_planner(files / "policy.npz", radius)
+        planner = Planner.load(files, radius)  # a run directory: its policy.npz
         start = jax.vmap(lambda task, env=planner.environment(2): env.reset(None, task))(tasks)
         visible[radius] = np.asarray(start.obs_mask).sum(-1)  # observed arms, per task and arm
     assert (visible[None] == 2).any() and (visible[0.0] == 1).all()  # neighbours within 1.7 m are seen, then none
@@ -106,7 +132,7 @@ def test_benchmark_neighbour_radius_overrides_the_policy_file(files, monkeypatch
     def record(checkpoint, radius, safe):
         requested.append(radius)
         raise ValueError("planner recorded")
-    monkeypatch.setattr(benchmark, "load_planner", record)
+    monkeypatch.setattr(Planner, "load", staticmethod(record))
     with pytest.raises(SystemExit, match="planner recorded"):
         benchmark.main([*common, "--neighbour-radius", "0"])
     assert requested == [0.0]

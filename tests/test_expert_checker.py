@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mjx_multiarm.expert.checker import CollisionChecker
+from mjx_multiarm.geometry.checker import CollisionChecker
 from mjx_multiarm.geometry.collision import scene_contacts
 from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.geometry.scene import build_scene

@@ -44,3 +44,19 @@ def test_layout_section_matches_the_tree():
     modules.add("benchmarks/common.py")
     unlisted = sorted((folders | modules) - set(listed))
     assert not unlisted, f"README Layout does not list: {unlisted}"
+
+
+def test_package_docstrings_list_their_modules():
+    """Each package's docstring names every module in it (``:mod:`.name```), so that
+    ``help(package)`` shows the layout; ``__main__`` modules are the command lines."""
+    import ast
+
+    root = README.parent
+    unlisted = []
+    for init in [p for top in ("mjx_multiarm", "train", "eval") for p in (root / top).rglob("__init__.py")]:
+        if init.parent.name == "mjx_multiarm":
+            continue  # the top package re-exports the public API instead
+        doc = ast.get_docstring(ast.parse(init.read_text())) or ""
+        unlisted += [f"{init.parent.name}.{p.stem}" for p in init.parent.glob("*.py")
+                     if p.stem not in ("__init__", "__main__") and f":mod:`.{p.stem}`" not in doc]
+    assert not unlisted, f"package docstrings do not list: {unlisted}"

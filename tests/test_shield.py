@@ -8,13 +8,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_env import _facing_pair, rollout
+from conftest import facing_pair, rollout
 
 from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
 from mjx_multiarm.env.shield import AWAY, HELD, PROPOSED, away_joints
 from mjx_multiarm.env.wrappers import TaskBank
 from mjx_multiarm.geometry.certified import certified_contacts
-from mjx_multiarm.geometry.collision import CONTACTS_ONLY, scene_contacts, swept_contacts
+from mjx_multiarm.geometry.collision import (
+    CONTACTS_ONLY,
+    scene_contacts,
+    swept_contacts,
+)
 from mjx_multiarm.tasks.types import take
 
 
@@ -65,7 +69,7 @@ def test_shielded_steps_never_collide_and_free_steps_pass_unchanged(crowded):
 def test_arms_driven_into_each_other_never_collide_when_shielded():
     """Two arms driven into each other (the plain environment ends that episode in a
     collision, test_env): shielded, the drive goes on to the step limit without one."""
-    bank = TaskBank.from_tasks(_facing_pair(), 2)
+    bank = TaskBank.from_tasks(facing_pair(), 2)
     final, states, _ = rollout(ReachingEnv(2, EnvConfig(max_steps=80, safe=True)), 80)(bank.tasks, jnp.asarray([0.02, 0.1]))
     assert not np.asarray(states.collided).any() and np.asarray(states.metrics["min_distance"]).min() >= 0
     task = jax.tree.map(lambda x: x[0], bank.tasks)  # its executed steps, re-checked densely

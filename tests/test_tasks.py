@@ -10,7 +10,6 @@ import pytest
 
 from mjx_multiarm import scene_contacts
 from mjx_multiarm.expert.planner import PlannerConfig
-from mjx_multiarm.expert.solve import straight_motion_free
 from mjx_multiarm.geometry.collision import frame_contacts
 from mjx_multiarm.geometry.ik import solve_positions
 from mjx_multiarm.geometry.kinematics import forward_kinematics
@@ -28,7 +27,7 @@ from mjx_multiarm.tasks.generate import (
     sample_bases_original,
     spec_record,
 )
-from mjx_multiarm.tasks.select import detour_rows
+from mjx_multiarm.tasks.select import detour_rows, straight_motion_free
 from mjx_multiarm.tasks.types import (
     DIFFICULTY_BINS,
     SPEED_BINS,
@@ -330,3 +329,16 @@ def test_cli_select_writes_the_subset_with_its_provenance(tmp_path, capsys, gene
     free = straight_motion_free(subset)
     assert meta["detours_by_team"] == {str(k): int(((subset.num_arms == k) & ~free).sum()) for k in (1, 2, 3)}
     assert "detour tasks by team size" in capsys.readouterr().out
+
+
+def test_cli_refuses_outputs_of_the_wrong_kind_and_empty_subsets(tmp_path, generated):
+    save_tasks(tmp_path / "a.npz", take(generated, np.arange(8)))
+    with pytest.raises(SystemExit, match="is a directory; give the .npz file"):
+        cli.main(["merge", str(tmp_path / "a.npz"), "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="is a file; export-json writes a folder"):
+        cli.main(["export-json", str(tmp_path / "a.npz"), "--out", str(tmp_path / "a.npz")])
+    with pytest.raises(SystemExit, match="per_team=0"):
+        cli.main(["select", str(tmp_path / "a.npz"), "--per-team", "0", "--detour-share", "0.5", "--out", str(tmp_path / "s.npz")])
+    assert not (tmp_path / "s.npz").exists()
+    with pytest.raises(ValueError, match="no tasks"):
+        save_tasks(tmp_path / "e.npz", take(generated, np.arange(0)))

@@ -46,12 +46,12 @@ from mjx_multiarm.files import atomic_write
 from mjx_multiarm.options import from_dict, leaves, to_dict, value_at
 from mjx_multiarm.planner.policy import policy_env_settings
 from mjx_multiarm.planner.policy_file import LoadedPolicy, load_policy, save_policy
+from train.agent import agent_from_parameters
 from train.checkpoint import Checkpoints
 from train.config import RunConfig
 from train.data import prepare
-from train.finetune import check_architecture, load_parent, parent_record
-from train.agent import agent_from_parameters
 from train.evaluation import evaluate_policy, policy_evaluator
+from train.finetune import check_architecture, load_parent, parent_record
 from train.plots import plot_learning_curve
 from train.relabel import CollisionRelabeller
 from train.trainer import Trainer

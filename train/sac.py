@@ -38,6 +38,7 @@ import pathlib
 import sys
 import time
 
+from mjx_multiarm.cli import Progress
 from mjx_multiarm.options import add_flags, apply, overrides
 from train.config import PRESETS, RunConfig, behaviour_cloning, without_expert
 from train.curriculum import LEVELS
@@ -97,31 +98,22 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
     return config
 
 
-class ProgressLine:
-    """The live progress line on stderr (rewritten at most every 2 s), and log messages."""
+class TrainingProgress(Progress):
+    """Training's rows on the progress line (rewritten every 2 s at most)."""
 
     def __init__(self):
-        self.last, self.open, self.heldout = 0.0, False, None
+        super().__init__(interval=2.0)
+        self.heldout = None
 
-    def update(self, row: dict) -> None:
+    def row(self, row: dict) -> None:
         if "heldout_success" in row:
             self.heldout = row["heldout_success"]
-        now = time.perf_counter()
-        if now - self.last < 2.0:
-            return
-        self.last, self.open = now, True
         level = int(row["level"])
         eps_p, eps_r = LEVELS[level]
         heldout = f" held-out {self.heldout:5.1%} |" if self.heldout is not None else ""
-        print(f"\r{row['env_steps']:>11,} env steps {row['env_steps_per_s']:8,.0f}/s | {row['updates']:>8,} updates | level "
-              f"{level + 1}/{len(LEVELS)} ({100 * eps_p:.1f} cm, {eps_r:.2f} rad) success {row['window_success']:5.1%} |{heldout} "
-              f"ETA {row['eta_minutes']:5.1f} min", end="", file=sys.stderr, flush=True)
-
-    def log(self, message: str) -> None:
-        if self.open:
-            print(file=sys.stderr)
-            self.open = False
-        print(message, file=sys.stderr, flush=True)
+        self.show(f"{row['env_steps']:>11,} env steps {row['env_steps_per_s']:8,.0f}/s | {row['updates']:>8,} updates | "
+                  f"level {level + 1}/{len(LEVELS)} ({100 * eps_p:.1f} cm, {eps_r:.2f} rad) success "
+                  f"{row['window_success']:5.1%} |{heldout} ETA {row['eta_minutes']:5.1f} min")
 
 
 def main(argv=None) -> None:
@@ -131,10 +123,10 @@ def main(argv=None) -> None:
     except (ValueError, FileNotFoundError) as error:
         sys.exit(f"error: {error}")
     run_dir = args.resume or args.run_dir or pathlib.Path("runs") / f"{args.preset}-{time.strftime('%Y%m%d-%H%M%S')}"
-    line = ProgressLine()
+    line = TrainingProgress()
     try:
         result = train(config, run_dir, resume=bool(args.resume), workers=args.workers, devices=args.devices,
-                       progress=line.update, log=line.log)
+                       progress=line.row, log=line.log)
     except (ValueError, FileNotFoundError) as error:
         sys.exit(f"error: {error}")
     except TrainingStopped as stopped:
@@ -143,6 +135,7 @@ def main(argv=None) -> None:
     except KeyboardInterrupt:
         sys.exit(f"\ninterrupted: {run_dir} keeps what it had saved; --resume {run_dir} continues it (from the start, "
                  "with the prepared tasks and experts, if it had no checkpoint yet)")
+    line.close()
     summary = result.summary
     for team, row in sorted(summary["evaluation"]["by_team_size"].items()):
         print(f"{team} arm(s): success {row['success_rate']:.1%}  collision {row['collision_rate']:.1%}  timeout {row['timeout_rate']:.1%} "

@@ -337,7 +337,8 @@ class ReachingEnv:
             raise ValueError(f"actions have shape {actions.shape}, expected {self.action_shape} (max_arms, joints)")
         task = state.task
         finite = jnp.isfinite(actions)
-        joints = self.next_joints(state.joints, actions, task.active)
+        # An ended episode holds still (its step is discarded below; a shield then certifies it at once).
+        joints = self.next_joints(state.joints, jnp.where(state.done, 0.0, actions), task.active)
         metrics = {}
         if self.config.safe:
             joints, motion, contacts = self.shield(task.base_pos, task.base_quat, state.joints, joints, task.active)

@@ -29,6 +29,11 @@ from mjx_multiarm.geometry.scene import Scene
 
 #: The motions an arm may be given, in the order they are tried.
 PROPOSED, AWAY, HELD = 0, 1, 2
+#: Evaluations the certified check may take per team check; an arm still pending counts as
+#: colliding and steps down (sound, only more cautious). Under ``vmap`` every team of a batch
+#: waits for the slowest one, so this bounds a batched safe step (measured in
+#: benchmarks/RESULTS.md, "Certified safe execution, second session").
+SHIELD_EVALUATIONS = 256
 
 
 def shielded_joints(scene: Scene, base_pos, base_quat, joints, proposed, active, joint_range, max_step):
@@ -55,7 +60,8 @@ def shielded_joints(scene: Scene, base_pos, base_quat, joints, proposed, active,
         return jnp.take_along_axis(options, level[None, :, None], axis=0)[0]
 
     def check(level) -> CertifiedMotion:
-        return certified_contacts(scene, base_pos, base_quat, joints, motion(level), active)
+        return certified_contacts(scene, base_pos, base_quat, joints, motion(level), active,
+                                  max_evaluations=SHIELD_EVALUATIONS)
 
     def colliding(level, contacts):
         return contacts.collided & active & (level < HELD)

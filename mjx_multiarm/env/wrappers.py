@@ -206,28 +206,49 @@ def replay_actions(env: ReachingEnv, state: State, actions, length) -> tuple[Sta
     return states, valid
 
 
-def make_episodes(env: ReachingEnv, policy, steps: int):
+#: Progress (m) of a team's summed end-effector distance to its targets that restarts the
+#: stall count of :func:`make_episodes` (``stall_steps``).
+STALL_PROGRESS = 0.01
+
+
+def make_episodes(env: ReachingEnv, policy, steps: int, stall_steps: int = 0):
     """A jitted function running a batch of tasks from their start for ``steps`` control steps.
 
     ``policy(states, params) -> actions [B, max_arms, 6]`` sees the batched states; the
     returned function maps (tasks [B], params) to the final states (finished episodes stay
     frozen at their end, see :class:`~mjx_multiarm.env.reaching.ReachingEnv`). Stepping
     stops once every episode of the batch has ended (the states would not change).
+
+    With ``stall_steps`` > 0 an episode also ends, as a timeout, once its team's summed
+    end-effector distance to its targets has not shrunk by :data:`STALL_PROGRESS` in that
+    many steps: a deadlock detector (the hybrid planner hands such a team over at once).
     """
+
+    def team_error(states):
+        error = jnp.linalg.norm(states.arms.ee_pos - states.arms.target_pos, axis=-1)
+        return jnp.where(states.task.active, error, 0.0).sum(axis=-1)
 
     @jax.jit
     def episodes(tasks: Tasks, params):
         start = jax.vmap(lambda task: env.reset(None, task))(tasks)
 
         def running(carry):
-            t, states = carry
+            t, states, _, _ = carry
             return (t < steps) & ~states.done.all()
 
         def step(carry):
-            t, states = carry
-            return t + 1, jax.vmap(env.step)(states, policy(states, params))
+            t, states, best, since = carry
+            states = jax.vmap(env.step)(states, policy(states, params))
+            if stall_steps:
+                error = team_error(states)
+                progress = error <= best - STALL_PROGRESS
+                best, since = jnp.where(progress, error, best), jnp.where(progress, 0, since + 1)
+                stalled = (since >= stall_steps) & ~states.done
+                states = states.replace(done=states.done | stalled, truncated=states.truncated | stalled)
+            return t + 1, states, best, since
 
-        return jax.lax.while_loop(running, step, (jnp.zeros((), jnp.int32), start))[1]
+        carry = (jnp.zeros((), jnp.int32), start, team_error(start), jnp.zeros(start.done.shape, jnp.int32))
+        return jax.lax.while_loop(running, step, carry)[1]
 
     return episodes
 

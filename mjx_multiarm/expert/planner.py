@@ -2,7 +2,7 @@
 
 The planner searches the 6k-D space of a k-arm task from the start to the goal
 configuration. Validity comes from the project's own collision model (the geoms the
-environment checks), evaluated by the compiled checker of :mod:`mjx_multiarm.expert.checker`:
+environment checks), evaluated by the compiled checker of :mod:`mjx_multiarm.geometry.checker`:
 one call per state, one per edge (a ``MotionValidator`` that checks the straight motion at
 0.05 rad resolution in every joint). The search stops at an iteration cap or a time cap;
 only exact solutions count. Solutions are shortcut with OMPL's ``PathSimplifier``
@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from mjx_multiarm.expert.checker import CollisionChecker
+from mjx_multiarm.geometry.checker import CollisionChecker
 from mjx_multiarm.geometry.collision import SWEEP_RESOLUTION
 from mjx_multiarm.geometry.robot import NUM_JOINTS
 

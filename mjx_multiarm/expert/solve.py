@@ -5,7 +5,7 @@ A task's expert is the delta-joint step sequence of its decimated RRT-Connect pl
 accepted the sequence is executed the way the environment executes it (float32 joints,
 joint limits) and every step is checked with the certified motion check
 (:mod:`mjx_multiarm.geometry.certified`), keeping
-:data:`~mjx_multiarm.expert.checker.REPLAY_MARGIN` of clearance for float32 arithmetic; the
+:data:`~mjx_multiarm.geometry.checker.REPLAY_MARGIN` of clearance for float32 arithmetic; the
 planner's edge checks sample configurations, so a sub-millimetre graze can pass them and
 fail this check. On such a disagreement the task is planned again with the next seed, up to
 ``PlannerConfig.attempts`` times, so every stored expert is certified free: no configuration
@@ -19,7 +19,6 @@ import dataclasses
 import numpy as np
 
 from mjx_multiarm.env.reaching import step_limits
-from mjx_multiarm.expert.checker import REPLAY_MARGIN
 from mjx_multiarm.expert.decimate import ANGLE_TOLERANCE, path_to_deltas
 from mjx_multiarm.expert.planner import (
     REPLAY_COLLISION,
@@ -29,6 +28,7 @@ from mjx_multiarm.expert.planner import (
     plan,
     task_seed,
 )
+from mjx_multiarm.geometry.checker import REPLAY_MARGIN, team_checker
 from mjx_multiarm.geometry.robot import NUM_JOINTS, load_arm
 from mjx_multiarm.tasks.types import Tasks
 
@@ -81,27 +81,10 @@ def replay_free(checker: CollisionChecker, start, deltas) -> bool:
     return checker.steps_certified(np.stack(joints), REPLAY_MARGIN)
 
 
-def team_checker(base_pos, base_quat, resolution: float) -> CollisionChecker:
-    """The collision checker of a team with bases ``base_pos`` [k, 3], ``base_quat`` [k, 4] (wxyz)."""
-    return CollisionChecker(base_pos, base_quat, load_arm().joint_range, resolution)
-
-
 def task_checker(tasks: Tasks, index: int, resolution: float) -> CollisionChecker:
     """The collision checker of the active arms of task ``index``."""
     active = np.asarray(tasks.active[index])
     return team_checker(tasks.base_pos[index][active], tasks.base_quat[index][active], resolution)
-
-
-def straight_motion_free(tasks: Tasks, resolution: float = PlannerConfig.resolution) -> np.ndarray:
-    """[N] bool: whether each task's straight joint-space motion from its start to its goal
-    configuration is collision-free (checked every ``resolution`` rad). A task where it is
-    not needs a detour: some arm has to go around another, or wait for it."""
-    free = np.empty(tasks.num_tasks, bool)
-    for i in range(tasks.num_tasks):
-        active = np.asarray(tasks.active[i])
-        free[i] = task_checker(tasks, i, resolution).motion_free(np.ravel(tasks.start_joints[i][active]),
-                                                                 np.ravel(tasks.goal_joints[i][active]))
-    return free
 
 
 def solve_team(base_pos, base_quat, start, goal, config: PlannerConfig = PlannerConfig(), seed: int = 0, task_id: int = 0,

@@ -6,7 +6,7 @@ capsule-box, box-box, signed where geoms overlap), evaluated one pair at a time 
 :func:`pose_arm` is :func:`~mjx_multiarm.geometry.kinematics.forward_kinematics` for one arm
 in float64. They serve two callers:
 
-- the expert planner's checker (:mod:`mjx_multiarm.expert.checker`), which asks about one
+- the expert planner's checker (:mod:`mjx_multiarm.geometry.checker`), which asks about one
   configuration at a time;
 - :func:`batch_contacts` and :func:`batch_joint_contacts`, the CPU kernel behind
   :func:`~mjx_multiarm.geometry.collision.geom_contacts` (posed geoms in) and

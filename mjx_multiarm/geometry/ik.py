@@ -15,7 +15,12 @@ import numpy as np
 
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import ArmModel
-from mjx_multiarm.geometry.transforms import quat_angle, quat_conjugate, quat_mul, quat_to_mat
+from mjx_multiarm.geometry.transforms import (
+    quat_angle,
+    quat_conjugate,
+    quat_mul,
+    quat_to_mat,
+)
 
 
 def _joint_bodies(arm: ArmModel) -> np.ndarray:

@@ -102,8 +102,11 @@ class Planner:
 
     @classmethod
     def load(cls, path: str | os.PathLike | None = None, neighbour_radius: float | None = None, safe: bool = False) -> Planner:
-        """The planner of policy file ``path`` (default: the shipped policy)."""
-        return cls(load_policy(SHIPPED_POLICY if path is None else path), neighbour_radius, safe)
+        """The planner of policy file ``path``, or of a run directory's ``policy.npz`` (default:
+        the shipped policy); ``neighbour_radius`` (m) replaces the radius the file records (0
+        blinds the policy to its neighbours); ``safe`` shields every team step."""
+        path = pathlib.Path(SHIPPED_POLICY if path is None else path)
+        return cls(load_policy(path / "policy.npz" if path.is_dir() else path), neighbour_radius, safe)
 
     def environment(self, num_arms: int, **settings) -> ReachingEnv:
         """An environment of ``num_arms`` slots with the policy's action scale and neighbour

@@ -24,7 +24,6 @@ import sys
 import numpy as np
 
 from mjx_multiarm.cli import Progress, parse_arms
-from mjx_multiarm.expert.solve import straight_motion_free
 from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
 from mjx_multiarm.tasks.generate import (
     DATASETS,
@@ -34,7 +33,7 @@ from mjx_multiarm.tasks.generate import (
     generate_dataset,
 )
 from mjx_multiarm.tasks.original_json import export_tasks, import_tasks
-from mjx_multiarm.tasks.select import detour_rows
+from mjx_multiarm.tasks.select import detour_rows, straight_motion_free
 from mjx_multiarm.tasks.types import (
     DIFFICULTY_BINS,
     SPEED_BINS,
@@ -127,6 +126,11 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
 
     try:
+        out = getattr(args, "out", None)
+        if args.command == "export-json" and out is not None and out.exists() and not out.is_dir():
+            raise ValueError(f"--out {out} is a file; export-json writes a folder of JSON files")
+        if args.command != "export-json" and out is not None and out.is_dir():
+            raise ValueError(f"--out {out} is a directory; give the .npz file to write")
         if args.command == "generate":
             base = DATASETS[args.preset] if args.preset else None
             if base is None and (args.arms is None or args.count is None):

@@ -23,8 +23,11 @@ SCHEMA_VERSION = 1
 
 
 def save_tasks(path: str | os.PathLike, tasks: Tasks, metadata: dict | None = None) -> None:
-    """Validate and write ``tasks`` (with JSON-serialisable ``metadata``) to ``path`` atomically."""
+    """Validate and write ``tasks`` (with JSON-serialisable ``metadata``) to ``path`` atomically;
+    ValueError for an empty set (a dataset holds at least one task)."""
     validate(tasks, str(path))
+    if not tasks.num_tasks:
+        raise ValueError(f"{path}: refusing to write a task dataset with no tasks")
     arrays = {name: np.asarray(getattr(tasks, name), dtype) for name, (dtype, _) in SCHEMA.items()}
     arrays["schema_version"] = np.array(SCHEMA_VERSION)
     arrays["metadata"] = np.array(json.dumps(metadata or {}, sort_keys=True))
@@ -36,8 +39,8 @@ def load_tasks(path: str | os.PathLike) -> tuple[Tasks, dict]:
 
     Raises:
       FileNotFoundError: no such file.
-      ValueError: not a task dataset, another schema version, or invalid fields (the
-        message names the file and the field).
+      ValueError: not a task dataset, another schema version, invalid fields (the message
+        names the file and the field), or no tasks.
     """
     path = pathlib.Path(path)
     if not path.is_file():
@@ -58,4 +61,7 @@ def load_tasks(path: str | os.PathLike) -> tuple[Tasks, dict]:
             metadata = json.loads(str(data["metadata"])) if "metadata" in data else {}
     except (zipfile.BadZipFile, OSError, EOFError) as error:
         raise ValueError(f"{path}: unreadable or corrupt task dataset ({error})") from error
-    return validate(tasks, str(path)), metadata
+    tasks = validate(tasks, str(path))
+    if not tasks.num_tasks:
+        raise ValueError(f"{path}: the task dataset holds no tasks")
+    return tasks, metadata

@@ -279,6 +279,11 @@ class CollisionChecker:
         return configs.reshape(len(configs), self.num_arms, NUM_JOINTS)
 
 
+def team_checker(base_pos, base_quat, resolution: float) -> CollisionChecker:
+    """The collision checker of a team of UR5s with bases ``base_pos`` [k, 3], ``base_quat`` [k, 4] (wxyz)."""
+    return CollisionChecker(base_pos, base_quat, load_arm().joint_range, resolution)
+
+
 @functools.cache
 def _reach_constants() -> tuple:
     """The certified check's tables: the geoms' reach from each joint's axis [6, ngeom], the
