@@ -30,7 +30,7 @@ import numpy as np
 from common import cpu_name, random_two_arm_steps
 
 from mjx_multiarm.env.reaching import ReachingEnv
-from mjx_multiarm.env.wrappers import TaskBank
+from mjx_multiarm.env.wrappers import TaskBank, batched_step
 from mjx_multiarm.geometry.certified import certified_contacts
 from mjx_multiarm.geometry.checker import team_checker
 from mjx_multiarm.geometry.collision import (
@@ -118,7 +118,7 @@ def check_rollouts(tasks_path: pathlib.Path, checkpoint: pathlib.Path | None, pe
             start = jax.vmap(lambda task: env.reset(None, task))(tasks)
 
             def body(states, _):
-                following = jax.vmap(env.step)(states, policy(states, params))
+                following = batched_step(env)(states, policy(states, params))
                 return following, (following.joints, states.done)
 
             return jax.lax.scan(body, start, None, length=steps)[1]

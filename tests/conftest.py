@@ -14,6 +14,7 @@ from hypothesis import settings
 
 from mjx_multiarm.env.reaching import ReachingEnv
 from mjx_multiarm.env.scripted import ik_actions
+from mjx_multiarm.env.wrappers import batched_step
 from mjx_multiarm.geometry.evaluate import base_pose_arrays
 from mjx_multiarm.geometry.ik import solve_positions
 from mjx_multiarm.geometry.kinematics import forward_kinematics
@@ -107,7 +108,7 @@ def rollout(env: ReachingEnv, steps: int, policy=None):
 
         def body(state, _):
             actions = jax.vmap(policy)(state)
-            state = jax.vmap(env.step)(state, actions)
+            state = batched_step(env)(state, actions)
             return state, (state, actions)
 
         final, (states, actions) = jax.lax.scan(body, start, None, steps)
