@@ -13,9 +13,12 @@ and end included) with the collision kernel (``swept_contacts``):
 - ``--tasks FILE``: the safe policy (``Planner(safe=True)``, the shipped policy unless
   ``--checkpoint``) run on the first ``--per-size`` tasks of each team size for 500 steps;
   every executed step before its episode ended is re-checked densely (must find no contact).
+  With ``--handover K`` the hybrid planner's rollouts instead: the safe policy for K steps,
+  then the executed steps of BiRRT's plan from where each unfinished task stopped.
 
     python benchmarks/certified_check.py --random 100000 --json
     python benchmarks/certified_check.py --tasks test1to10.npz --per-size 32 --json
+    python benchmarks/certified_check.py --tasks crowd1to10.npz --per-size 8 --handover 100 --json
 """
 
 from __future__ import annotations
@@ -31,6 +34,8 @@ from common import cpu_name, random_two_arm_steps
 
 from mjx_multiarm.env.reaching import ReachingEnv
 from mjx_multiarm.env.wrappers import TaskBank, batched_step
+from mjx_multiarm.expert.planner import SOLVED, PlannerConfig
+from mjx_multiarm.expert.solve import executed_joints, solve_team
 from mjx_multiarm.geometry.certified import certified_contacts
 from mjx_multiarm.geometry.checker import team_checker
 from mjx_multiarm.geometry.collision import (
@@ -38,6 +43,7 @@ from mjx_multiarm.geometry.collision import (
     scene_contacts,
     swept_contacts,
 )
+from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.planner.policy import SHIPPED_POLICY, Planner
 from mjx_multiarm.tasks.dataset import load_tasks
 from mjx_multiarm.tasks.types import take
@@ -101,9 +107,29 @@ def check_random(motions: int, dense: int, seed: int = 0, chunk: int = 2048) -> 
             "jax_evaluations_p99": float(np.percentile(evaluations, 99)), "jax_evaluations_max": int(evaluations.max())}
 
 
+def _handed_over_steps(subset, size: int, final_joints: np.ndarray, unfinished: np.ndarray):
+    """The executed plan steps of the hybrid (``birrt_handover``'s BiRRT call) for the
+    ``unfinished`` tasks of ``subset``, from where their episodes ended: [n, 2, size, 6] motions
+    with the index of their task."""
+    joint_range = load_arm().joint_range
+    motions, owners = [], []
+    for i in np.flatnonzero(unfinished):
+        result = solve_team(subset.base_pos[i][:size], subset.base_quat[i][:size], final_joints[i][:size],
+                            subset.goal_joints[i][:size], PlannerConfig(), 0, int(subset.task_id[i]))
+        if result.status == SOLVED:
+            path = executed_joints(final_joints[i][:size], result.deltas, joint_range)
+            motions.append(np.stack([path[:-1], path[1:]], axis=1))
+            owners.append(np.full(len(path) - 1, i))
+    if not motions:
+        return np.zeros((0, 2, size, 6), np.float32), np.zeros(0, int)
+    return np.concatenate(motions), np.concatenate(owners)
+
+
 def check_rollouts(tasks_path: pathlib.Path, checkpoint: pathlib.Path | None, per_size: int, dense: int,
-                   steps: int = 500) -> dict:
-    """Part two of the module doc."""
+                   steps: int = 500, handover: int = 0) -> dict:
+    """Part two of the module doc; with ``handover`` the hybrid's rollouts: the safe policy for
+    that many steps, then BiRRT from where each unfinished task stopped."""
+    steps = handover or steps
     tasks, _ = load_tasks(tasks_path)
     planner = Planner.load(checkpoint, safe=True)
     result = {"tasks": str(tasks_path), "policy": str(checkpoint or SHIPPED_POLICY), "dense": dense, "by_team_size": {}}
@@ -121,22 +147,29 @@ def check_rollouts(tasks_path: pathlib.Path, checkpoint: pathlib.Path | None, pe
                 following = batched_step(env)(states, policy(states, params))
                 return following, (following.joints, states.done)
 
-            return jax.lax.scan(body, start, None, length=steps)[1]
+            final, trace = jax.lax.scan(body, start, None, length=steps)
+            return trace, final.success
 
-        joints, done_before = (np.asarray(x) for x in run(bank.tasks, planner.params))  # [T, N, A, 6], [T, N]
+        (joints, done_before), success = jax.device_get(run(bank.tasks, planner.params))  # [T, N, A, 6], [T, N], [N]
         before = np.concatenate([np.asarray(bank.tasks.start_joints)[None], joints[:-1]])
         t, n = np.nonzero(~done_before)  # the steps executed before each episode ended
+        q0, q1 = before[t, n], joints[t, n]
+        row = {"tasks": bank.size, "policy_steps": int(len(t))}
+        if handover:
+            plan, owner = _handed_over_steps(subset, size, joints[-1], ~success)
+            q0, q1, n = np.concatenate([q0, plan[:, 0]]), np.concatenate([q1, plan[:, 1]]), np.concatenate([n, owner])
+            row.update(handed_over=int((~success).sum()), plan_steps=int(len(plan)))
         t0 = time.perf_counter()
         check, chunk = _dense_check(env.scene, dense), 512
-        rows = np.concatenate([np.arange(len(t)), np.zeros(-len(t) % chunk, int)])  # padded to whole chunks
+        rows = np.concatenate([np.arange(len(n)), np.zeros(-len(n) % chunk, int)])  # padded to whole chunks
         touched = np.concatenate([np.asarray(check(*(np.asarray(x)[part] for x in (
-            np.asarray(bank.tasks.base_pos)[n], np.asarray(bank.tasks.base_quat)[n], before[t, n], joints[t, n],
-            np.asarray(bank.tasks.active)[n])))) for part in rows.reshape(-1, chunk)])[: len(t)]
-        result["by_team_size"][str(size)] = {"tasks": bank.size, "steps_checked": int(len(t)),
-                                             "steps_in_contact": int(touched.sum()),
-                                             "recheck_s": time.perf_counter() - t0}
-        print(f"  {size:>2} arms: {bank.size} tasks, {len(t):,} executed steps re-checked, {int(touched.sum())} in contact",
-              flush=True)
+            np.asarray(bank.tasks.base_pos)[n], np.asarray(bank.tasks.base_quat)[n], q0, q1,
+            np.asarray(bank.tasks.active)[n])))) for part in rows.reshape(-1, chunk)])[: len(n)]
+        row.update(steps_checked=int(len(n)), steps_in_contact=int(touched.sum()), recheck_s=time.perf_counter() - t0)
+        result["by_team_size"][str(size)] = row
+        planned = f" ({row['plan_steps']:,} of them BiRRT's)" if handover else ""
+        print(f"  {size:>2} arms: {bank.size} tasks, {len(n):,} executed steps re-checked{planned}, "
+              f"{int(touched.sum())} in contact", flush=True)
     return result
 
 
@@ -146,6 +179,9 @@ def main(argv=None):
     parser.add_argument("--tasks", type=pathlib.Path, help="a task file: re-check the safe policy's executed steps")
     parser.add_argument("--checkpoint", type=pathlib.Path, help="policy file (default: the shipped policy)")
     parser.add_argument("--per-size", type=int, default=32, help="tasks per team size of --tasks")
+    parser.add_argument("--handover", type=int, default=0, metavar="K",
+                        help="re-check the hybrid instead: the safe policy for K steps, then BiRRT's plan from where each "
+                             "unfinished task stopped (as eval.benchmark --handover --episode-steps K)")
     parser.add_argument("--dense", type=int, default=256, help="configurations per motion of the re-check")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", action="store_true", help="end with one JSON line")
@@ -164,7 +200,7 @@ def main(argv=None):
         print(f"  JAX march: {r['jax_evaluations_mean']:.1f} evaluations on average, p99 {r['jax_evaluations_p99']:.0f}, "
               f"max {r['jax_evaluations_max']}")
     if args.tasks is not None:
-        report["rollouts"] = check_rollouts(args.tasks, args.checkpoint, args.per_size, args.dense)
+        report["rollouts"] = check_rollouts(args.tasks, args.checkpoint, args.per_size, args.dense, handover=args.handover)
     if args.json:
         print(json.dumps(report))
 

@@ -30,9 +30,9 @@ from mjx_multiarm.geometry.scene import Scene
 #: The motions an arm may be given, in the order they are tried.
 PROPOSED, AWAY, HELD = 0, 1, 2
 #: Evaluations the certified check may take per team check; an arm still pending counts as
-#: colliding and steps down (sound, only more cautious). Under ``vmap`` every team of a batch
-#: waits for the slowest one, so this bounds a batched safe step (measured in
-#: benchmarks/RESULTS.md, "Certified safe execution, second session").
+#: colliding and steps down (sound: a lower cap only makes the shield more cautious). Kept at
+#: the check's own cap: batches of teams step one team at a time on a CPU
+#: (:func:`mjx_multiarm.env.wrappers.batched_step`), so a slow team no longer holds up the others.
 SHIELD_EVALUATIONS = 256
 
 

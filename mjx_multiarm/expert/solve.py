@@ -71,14 +71,21 @@ def solve(checker: CollisionChecker, start, goal, config: PlannerConfig, seed: i
     return ExpertResult(task_id, REPLAY_COLLISION, empty, total_s, total_iterations, config.attempts)
 
 
-def replay_free(checker: CollisionChecker, start, deltas) -> bool:
-    """Whether executing ``deltas`` [T, k, 6] from composite ``start`` [6k] as the environment
-    does (float32 joints, joint limits) is certified free, keeping :data:`REPLAY_MARGIN`."""
-    lower, upper = (np.asarray(x, np.float32).reshape(-1, NUM_JOINTS) for x in (checker.lower, checker.upper))
+def executed_joints(start, deltas, joint_range) -> np.ndarray:
+    """[T + 1, k, 6] the team configurations of executing ``deltas`` [T, k, 6] from ``start``
+    ([k, 6] or composite [6k]) as the environment does (float32 joints, ``joint_range`` [6, 2])."""
+    lower, upper = (np.asarray(x, np.float32) for x in np.asarray(joint_range).T)
     joints = [np.asarray(start, np.float32).reshape(-1, NUM_JOINTS)]
     for delta in np.asarray(deltas, np.float32):
         joints.append(np.clip(joints[-1] + delta, lower, upper).astype(np.float32))
-    return checker.steps_certified(np.stack(joints), REPLAY_MARGIN)
+    return np.stack(joints)
+
+
+def replay_free(checker: CollisionChecker, start, deltas) -> bool:
+    """Whether executing ``deltas`` [T, k, 6] from composite ``start`` [6k] as the environment
+    does is certified free (:func:`executed_joints`), keeping :data:`REPLAY_MARGIN`."""
+    joint_range = np.stack([checker.lower[:NUM_JOINTS], checker.upper[:NUM_JOINTS]], axis=-1)
+    return checker.steps_certified(executed_joints(start, deltas, joint_range), REPLAY_MARGIN)
 
 
 def task_checker(tasks: Tasks, index: int, resolution: float) -> CollisionChecker:
