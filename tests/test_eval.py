@@ -64,7 +64,9 @@ def test_benchmark_policy_and_birrt_tables(files, tmp_path, capsys):
     with pytest.raises(SystemExit, match="no task of 3 arms"):
         benchmark.main(["--checkpoint", str(files / "policy.npz"), "--arms", "3", *common])
 
-    benchmark.main(["--planner", "birrt", "--mode", "static", "--out", str(tmp_path / "b"), *common])
+    benchmark.main(["--planner", "birrt", "--mode", "static", "--out", str(tmp_path / "t"), *common])
+    assert last_json(capsys)["timeout_rate"] > 0  # plans count within the episode's steps: not all fit in 10
+    benchmark.main(["--planner", "birrt", "--mode", "static", "--out", str(tmp_path / "b"), *common, "--episode-steps", "500"])
     birrt = last_json(capsys)
     assert birrt["success"]["1"]["average"] == 1.0 and birrt["success"]["2"]["average"] == 1.0
     assert birrt["steps_to_success"] > 0 and "dynamic" not in birrt
