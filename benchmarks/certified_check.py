@@ -154,11 +154,11 @@ def check_rollouts(tasks_path: pathlib.Path, checkpoint: pathlib.Path | None, pe
         before = np.concatenate([np.asarray(bank.tasks.start_joints)[None], joints[:-1]])
         t, n = np.nonzero(~done_before)  # the steps executed before each episode ended
         q0, q1 = before[t, n], joints[t, n]
-        row = {"tasks": bank.size, "policy_steps": int(len(t))}
+        row = {"tasks": bank.size, "policy_steps": int(len(t)), "policy_successes": int(success.sum())}
         if handover:
             plan, owner = _handed_over_steps(subset, size, joints[-1], ~success)
             q0, q1, n = np.concatenate([q0, plan[:, 0]]), np.concatenate([q1, plan[:, 1]]), np.concatenate([n, owner])
-            row.update(handed_over=int((~success).sum()), plan_steps=int(len(plan)))
+            row.update(handed_over=int((~success).sum()), plans=int(len(np.unique(owner))), plan_steps=int(len(plan)))
         t0 = time.perf_counter()
         check, chunk = _dense_check(env.scene, dense), 512
         rows = np.concatenate([np.arange(len(n)), np.zeros(-len(n) % chunk, int)])  # padded to whole chunks
@@ -168,7 +168,8 @@ def check_rollouts(tasks_path: pathlib.Path, checkpoint: pathlib.Path | None, pe
         row.update(steps_checked=int(len(n)), steps_in_contact=int(touched.sum()), recheck_s=time.perf_counter() - t0)
         result["by_team_size"][str(size)] = row
         planned = f" ({row['plan_steps']:,} of them BiRRT's)" if handover else ""
-        print(f"  {size:>2} arms: {bank.size} tasks, {len(n):,} executed steps re-checked{planned}, "
+        print(f"  {size:>2} arms: {bank.size} tasks, {row['policy_successes']} reached by the safe policy, "
+              f"{len(n):,} executed steps re-checked{planned}, "
               f"{int(touched.sum())} in contact", flush=True)
     return result
 

@@ -5,6 +5,7 @@
     python -m eval.pickplace --runs 20 --render 2                    # PNG frames (+ MP4) of 2 runs
     python -m eval.pickplace --runs 500 --seed 1000 --safe           # the policy's team steps shielded
     python -m eval.pickplace --runs 500 --approach-height 0 --start-height 0   # the original protocol
+    python -m eval.pickplace --write-scene scene.xml                 # the scene's MJCF, for MuJoCo's viewer
 
 Every arm runs the protocol of :mod:`mjx_multiarm.pickplace.protocol` with the shared
 reaching policy (default: the shipped one) under MuJoCo physics: MuJoCo C (default; runs in
@@ -15,18 +16,25 @@ the same runs on either backend.
 
 Outcomes. ``success``: every arm finished its sequence with no collision under the
 original's rule (an arm in a policy phase touching another arm, the floor, the bin or an
-object it does not hold) and every object's x, y lies inside the bin. ``success_rate`` counts
+object it does not hold; every touch a MuJoCo contact at any physics step) and every
+object's x, y lies inside the bin. ``success_rate`` counts
 all runs. ``paper_success_rate`` is the published figure's definition (the original's
 ``demo.py``): successes over *valid* runs, where a run is valid if it succeeded, ended in an
 arm-arm or arm-floor collision, or finished its sequences (objects outside the bin included);
 runs ending in a bin or object collision, or a timeout, are discarded. ``strict_success``
-adds the project's stricter accounting (:mod:`~mjx_multiarm.pickplace.protocol`).
+adds the project's stricter accounting (:mod:`~mjx_multiarm.pickplace.protocol`). Beside
+the physics' verdict each run keeps the collision model's (``kernel_cause``: arm-arm and
+arm-floor from the reaching kernel at the end of each control step, the gripper as the
+original's stand-in box).
 
 Writes ``runs.csv`` (one row per run), ``summary.json`` and ``summary.md`` (beside the
 paper's figures) and, with ``--render N``, ``render/run_<r>/frame_*.png`` and ``run_<r>.mp4``
 (MP4 needs imageio and imageio-ffmpeg). ``--json`` ends the output with one JSON line holding
 ``runs``, ``success_rate``, ``paper_success_rate``, ``valid_runs``, ``failures`` (counts by
-cause), ``strict_success_rate``, ``mean_physics_steps_success``, ``runs_per_minute`` and
+cause, from the physics' contacts), ``kernel_failures`` (counts by the collision model's
+cause), ``kernel_missed`` (runs ended by a physics collision that the collision model's
+accounting does not flag), ``kernel_only`` (runs it flags that no physics collision
+ended), ``strict_success_rate``, ``mean_physics_steps_success``, ``runs_per_minute`` and
 ``physics_steps_per_second``.
 """
 
@@ -61,6 +69,8 @@ from mjx_multiarm.pickplace.protocol import CAUSES, MAX_CONTROL_STEPS
 PAPER = {"runs": 500, "valid_runs": 298, "paper_success_rate": 0.783, "mean_physics_steps_success": 6206}
 #: Causes that keep a failed run valid under the paper's definition.
 VALID_FAILURES = ("arm-arm", "arm-floor", "outside-bin")
+#: Causes that are collisions.
+COLLISIONS = ("arm-arm", "arm-floor", "arm-bin", "arm-object")
 
 
 @functools.cache
@@ -111,6 +121,8 @@ def summarize(results: list[dict], wall_seconds: float) -> dict:
     causes = [r["cause"] for r in results]
     valid = success | np.isin(causes, VALID_FAILURES)
     steps = np.array([r["physics_steps"] for r in results])
+    kernel = [r["kernel_cause"] for r in results]
+    collided, kernel_collided = np.isin(causes, COLLISIONS), np.isin(kernel, COLLISIONS)
     return {
         "runs": runs,
         "success_rate": float(success.mean()) if runs else 0.0,
@@ -118,6 +130,9 @@ def summarize(results: list[dict], wall_seconds: float) -> dict:
         "valid_runs": int(valid.sum()),
         "strict_success_rate": float(np.mean([r["strict_success"] for r in results])) if runs else 0.0,
         "failures": {c: causes.count(c) for c in CAUSES if c != "none" and c in causes},
+        "kernel_failures": {c: kernel.count(c) for c in CAUSES if c != "none" and c in kernel},
+        "kernel_missed": int((collided & ~kernel_collided).sum()),
+        "kernel_only": int((~collided & kernel_collided).sum()),
         "strict_violations": {c: n for c in CAUSES if c != "none"
                               and (n := sum(r["strict_cause"] == c for r in results))},
         "failure_phases": {p: n for p in sorted({r["cause_phase"] for r in results if r["cause_phase"]})
@@ -140,9 +155,13 @@ def summary_markdown(summary: dict, settings: dict) -> str:
         (f"| paper (Ha et al. 2020) | {PAPER['runs']} | {PAPER['valid_runs']} | {PAPER['paper_success_rate']:.1%} | - | - | "
         f"{PAPER['mean_physics_steps_success']} |"),
         "",
-        "| failure cause | runs |",
-        "|---|---|",
-        *[f"| {cause} | {n} |" for cause, n in summary["failures"].items()],
+        "| failure cause | runs (physics) | runs (collision model) |",
+        "|---|---|---|",
+        *[f"| {cause} | {summary['failures'].get(cause, 0)} | {summary['kernel_failures'].get(cause, 0)} |"
+          for cause in CAUSES if cause in summary["failures"] or cause in summary["kernel_failures"]],
+        "",
+        f"Physics collisions the collision model's accounting misses: {summary['kernel_missed']} runs; "
+        f"collisions only it sees: {summary['kernel_only']} runs.",
     ]
     return "\n".join(rows) + "\n"
 
@@ -150,12 +169,12 @@ def summary_markdown(summary: dict, settings: dict) -> str:
 def _write_runs_csv(path: pathlib.Path, results: list[dict]) -> None:
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    writer.writerow(["run", "objects", "success", "cause", "cause_phase", "strict_cause", "phases", "control_steps",
-                     "physics_steps", "seconds"])
+    writer.writerow(["run", "objects", "success", "cause", "cause_phase", "strict_cause", "kernel_cause", "phases",
+                     "control_steps", "physics_steps", "seconds"])
     for r in results:
         writer.writerow([r["run"], " ".join(r["objects"]), int(r["success"]), r["cause"], r["cause_phase"] or "",
-                         r["strict_cause"], " ".join(r["phases"]), r["control_steps"], r["physics_steps"],
-                         f"{r['seconds']:.3f}"])
+                         r["strict_cause"], r["kernel_cause"], " ".join(r["phases"]), r["control_steps"],
+                         r["physics_steps"], f"{r['seconds']:.3f}"])
     atomic_write(path, lambda f: f.write(buffer.getvalue().encode()))
 
 
@@ -204,7 +223,15 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=pathlib.Path, help="output directory (default runs/pickplace-<time>)")
     parser.add_argument("--render", type=int, default=0, metavar="N", help="render the first N runs (MuJoCo C)")
     parser.add_argument("--json", action="store_true", help="end with one JSON line")
+    parser.add_argument("--write-scene", type=pathlib.Path, metavar="FILE",
+                        help="write the scene's MJCF (every object slot with all its pieces) to FILE and exit")
     args = parser.parse_args(argv)
+    if args.write_scene is not None:
+        from mjx_multiarm.pickplace.scene import write_scene
+
+        write_scene(args.write_scene)
+        print(f"wrote {args.write_scene} (open it with: python -m mujoco.viewer --mjcf {args.write_scene})")
+        return
     for name in ("runs", "batch", "workers", "max_steps"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1")

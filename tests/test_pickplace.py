@@ -18,6 +18,7 @@ from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.geometry.transforms import quat_angle
 from mjx_multiarm.pickplace import backends, plans, protocol
 from mjx_multiarm.pickplace.scene import (
+    ARM,
     ASSETS,
     BASE_POS,
     BASE_QUAT,
@@ -123,18 +124,47 @@ def test_arm_contacts_classify_touches(scene):
     arm1 = m.geom("arm1/pad_left").id
     floor, own, other = m.geom("floor").id, m.geom("object0/cube_0").id, m.geom("object2/cube_0").id
     bin_wall = m.geom("bin_wall_+x").id
-    geom1 = np.array([arm0, own, arm0, arm1, floor])
-    geom2 = np.array([own, arm1, other, bin_wall, arm1])
-    dist = np.array([-0.001, -0.002, 0.01, -0.001, -0.003])  # the third is no touch
+    arm3 = m.geom("arm3/finger_right").id
+    geom1 = np.array([arm0, own, arm0, arm1, floor, arm3])
+    geom2 = np.array([own, arm1, other, bin_wall, arm1, arm1])
+    dist = np.array([-0.001, -0.002, 0.01, -0.001, -0.003, -0.0005])  # the third is no touch
     flags = protocol.arm_contacts(scene, geom1, geom2, dist)
-    expected = np.zeros((4, 4), bool)
+    expected = np.zeros((4, protocol.TOUCH_KINDS), bool)
     expected[0, protocol.TOUCH_OWN_OBJECT] = True
     expected[1, protocol.TOUCH_OTHER_OBJECT] = True  # arm 1 touched object 0
     expected[1, protocol.TOUCH_BIN] = True
     expected[1, protocol.TOUCH_FLOOR] = True
+    expected[[1, 3], protocol.TOUCH_ARM] = True  # arm 3's finger met arm 1's pad
     np.testing.assert_array_equal(flags, expected)
     np.testing.assert_array_equal(np.asarray(protocol.arm_contacts(scene, jnp.asarray(geom1), jnp.asarray(geom2),
                                                                    jnp.asarray(dist), xp=jnp)), expected)
+
+
+def test_arms_collide_with_each_other_in_the_physics_not_with_themselves(scene):
+    """Every arm geom (capsules, gripper box, fingers, pads) can touch every other arm's and
+    the static scene, and no geom of its own arm; a finger pushed into another arm's
+    gripper is a MuJoCo contact."""
+    m = scene.model
+    kind, slot = scene.geom_kind, scene.geom_slot
+    for g1 in np.flatnonzero(kind == ARM):
+        for g2 in np.flatnonzero(kind == ARM):
+            meets = bool(m.geom_contype[g1] & m.geom_conaffinity[g2] or m.geom_contype[g2] & m.geom_conaffinity[g1])
+            assert meets == (slot[g1] != slot[g2]), (m.geom(g1).name, m.geom(g2).name)
+        for g2 in np.flatnonzero(kind != ARM):
+            assert m.geom_contype[g1] & m.geom_conaffinity[g2], (m.geom(g1).name, m.geom(g2).name)
+    # Arm 1 moved (its base) so that its right pad sits on arm 0's left pad: MuJoCo reports
+    # the pads' contact, and it counts as arm-arm for both.
+    data = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, data)
+    pad0, pad1 = m.geom("arm0/pad_left").id, m.geom("arm1/pad_right").id
+    moved = copy.deepcopy(m)
+    moved.body_pos[m.body("arm1/base_link").id] += data.geom_xpos[pad0] - data.geom_xpos[pad1]
+    data = mujoco.MjData(moved)
+    mujoco.mj_forward(moved, data)
+    c, n = data.contact, data.ncon
+    assert any({c.geom1[i], c.geom2[i]} == {pad0, pad1} and c.dist[i] < 0 for i in range(n))
+    flags = protocol.arm_contacts(scene, c.geom1[:n], c.geom2[:n], c.dist[:n])
+    assert flags[0, protocol.TOUCH_ARM] and flags[1, protocol.TOUCH_ARM]
 
 
 def test_initial_configurations_touch_nothing_and_low_arms_rise(scene):
@@ -239,7 +269,8 @@ def test_cli_writes_outcomes_and_renders(tmp_path, capsys):
     pickplace.main(["--runs", "2", "--seed", "1000", "--max-steps", "4", "--workers", "1", "--render", "1",
                     "--out", str(tmp_path), "--json"])
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert summary["runs"] == 2 and set(summary) >= {"success_rate", "paper_success_rate", "valid_runs", "failures"}
+    assert summary["runs"] == 2 and set(summary) >= {"success_rate", "paper_success_rate", "valid_runs", "failures",
+                                                     "kernel_failures", "kernel_missed", "kernel_only"}
     assert (tmp_path / "runs.csv").read_text().count("\n") == 3 and (tmp_path / "summary.md").exists()
     frames = sorted((tmp_path / "render" / "run_0").glob("*.png"))
     if not frames:
@@ -262,3 +293,35 @@ def test_physics_fidelity_runs_reaching_tasks_under_servos():
     with pytest.raises(ValueError, match="every slot is active"):
         physics_outcomes(Planner.load(), generate_chunk(GenerationSpec(count=2, arm_counts=(1,), max_arms=2, seed=3,
                                                                       chunk_size=2), 0))
+
+
+def test_write_scene_writes_the_compiled_scene(scene, tmp_path):
+    """``eval.pickplace --write-scene`` writes an MJCF that MuJoCo loads into the same scene."""
+    from eval.pickplace import main
+
+    main(["--write-scene", str(tmp_path / "scene.xml")])
+    written = mujoco.MjModel.from_xml_path(str(tmp_path / "scene.xml"))
+    for field in ("ngeom", "nbody", "njnt", "nu", "neq"):
+        assert getattr(written, field) == getattr(scene.model, field), field
+    for field in ("geom_contype", "geom_conaffinity", "geom_size", "geom_pos", "body_mass", "body_ipos", "body_inertia",
+                  "dof_armature", "actuator_gainprm", "actuator_biasprm"):
+        # MJCF text keeps 6 significant digits
+        np.testing.assert_allclose(getattr(written, field), getattr(scene.model, field), rtol=1e-5, atol=1e-7, err_msg=field)
+
+
+def test_summary_counts_physics_failures_beside_the_collision_models():
+    """``failures`` are the physics' causes; ``kernel_failures`` the collision model's, and the
+    runs each accounting alone flags are counted both ways."""
+    from eval.pickplace import summarize
+
+    def run(cause, kernel):
+        return {"success": cause == "none", "cause": cause, "kernel_cause": kernel, "cause_phase": None,
+                "strict_cause": cause, "strict_success": cause == "none", "physics_steps": 1200}
+
+    results = [run("arm-arm", "none"), run("arm-arm", "arm-arm"), run("none", "arm-arm"), run("arm-bin", "arm-bin"),
+               run("none", "none"), run("timeout", "none")]
+    summary = summarize(results, wall_seconds=1.0)
+    assert summary["failures"] == {"arm-arm": 2, "arm-bin": 1, "timeout": 1}
+    assert summary["kernel_failures"] == {"arm-arm": 2, "arm-bin": 1}
+    assert summary["kernel_missed"] == 1 and summary["kernel_only"] == 1
+    assert summary["success_rate"] == 2 / 6

@@ -29,6 +29,7 @@ from mjx_multiarm.pickplace.protocol import (
     MAX_CONTROL_STEPS,
     PHASES,
     SUBSTEPS,
+    TOUCH_KINDS,
     ControllerState,
     Sensors,
     arm_contacts,
@@ -50,6 +51,7 @@ class RunResult:
     cause_phase: str | None  # phase of the arm that collided
     strict_cause: str  # first violation under the stricter accounting ("none" if none)
     strict_success: bool
+    kernel_cause: str  # the run's first collision with arm-arm and arm-floor from the collision model ("none" if none)
     control_steps: int
     physics_steps: int
     phases: list[str]  # every arm's phase at the end
@@ -68,6 +70,7 @@ class RunResult:
             results.append(cls(
                 success=success, cause=CAUSES[int(state.cause[r])], cause_phase=PHASES[phase] if phase >= 0 else None,
                 strict_cause=strict, strict_success=success and strict == "none",
+                kernel_cause=CAUSES[int(state.kernel_cause[r])],
                 control_steps=int(state.step[r]), physics_steps=int(state.step[r]) * SUBSTEPS,
                 phases=[PHASES[int(p)] for p in state.phase[r]], object_pos=np.round(object_pos[r], 4).tolist(),
                 seconds=seconds))
@@ -147,7 +150,7 @@ def run_mujoco(scene: PickPlaceScene, policy_step, plans: RunPlan, max_control_s
     models, datas = _settled(scene, plans)
     control = _controller(scene, policy_step, max_control_steps)
     state = jax.vmap(initial_state)(plans)
-    sensors = _sensors_mujoco(scene, datas, np.zeros((runs, NUM_ARMS, 4), bool))
+    sensors = _sensors_mujoco(scene, datas, np.zeros((runs, NUM_ARMS, TOUCH_KINDS), bool))
     for step in range(max_control_steps + 1):  # the controller ends every run by then
         previous = np.asarray(state.command.arm_target), np.asarray(state.command.gripper)
         state, commands = control(plans, state, sensors)
@@ -155,7 +158,7 @@ def run_mujoco(scene: PickPlaceScene, policy_step, plans: RunPlan, max_control_s
         if ended.all():
             break
         commands = jax.tree.map(np.asarray, commands)
-        touched = np.zeros((runs, NUM_ARMS, 4), bool)
+        touched = np.zeros((runs, NUM_ARMS, TOUCH_KINDS), bool)
         for r in np.flatnonzero(~ended):
             m, d = models[r], datas[r]
             for a in np.flatnonzero(commands.attach[r]):
@@ -215,7 +218,7 @@ def _mjx_advance(scene: PickPlaceScene, policy_step, chunk: int, max_steps: int)
             d = mjx.step(m, d.replace(ctrl=ctrl))
             return d, touched | _contacts_mjx(scene, d)
 
-        new_d, touched = jax.lax.fori_loop(0, SUBSTEPS, substep, (d, jnp.zeros((NUM_ARMS, 4), bool)))
+        new_d, touched = jax.lax.fori_loop(0, SUBSTEPS, substep, (d, jnp.zeros((NUM_ARMS, TOUCH_KINDS), bool)))
         new_d = jax.tree.map(lambda old, new: jnp.where(state.ended, old, new), d, new_d)
         return eq_data, new_d, state, _sense_mjx(scene, new_d, touched)
 
@@ -268,7 +271,7 @@ def _run_mjx_batch(scene: PickPlaceScene, policy_step, plans: RunPlan, max_contr
     d = jax.tree.map(lambda *xs: jnp.stack(xs), *[mjx.put_data(m, d) for m, d in zip(models, datas)])
     geom_pos = jnp.asarray(np.stack([m.geom_pos for m in models]), d.qpos.dtype)
     eq_data = jnp.asarray(np.stack([m.eq_data for m in models]), d.qpos.dtype)
-    sensors = _sensors_mujoco(scene, datas, np.zeros((runs, NUM_ARMS, 4), bool))
+    sensors = _sensors_mujoco(scene, datas, np.zeros((runs, NUM_ARMS, TOUCH_KINDS), bool))
     state = jax.vmap(initial_state)(plans)
     while not bool(np.asarray(state.ended).all()):  # the controller ends every run by max_control_steps
         eq_data, d, state, sensors = advance(plans, geom_pos, eq_data, d, state, sensors)

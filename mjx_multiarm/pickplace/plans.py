@@ -43,8 +43,8 @@ APPROACH_HEIGHT = 0.25
 #: Before its first policy phase, an arm whose end effector starts lower than this (m) rises
 #: straight up to it (``rise``; 0: no rise, the original protocol).
 START_HEIGHT = 0.3
-#: Initial configurations: home + U(-0.4, 0.4) rad per joint, collision-free in the whole
-#: scene (arms, grippers, bin, floor, objects), ee above 0.2 m.
+#: Initial configurations: home + U(-0.4, 0.4) rad per joint, collision-free in the physics
+#: scene (arms, grippers, bin, floor, objects) and the collision model, ee above 0.2 m.
 INIT_NOISE = 0.4
 INIT_MIN_EE_HEIGHT = 0.2
 #: Resting orientations tried besides upright (wxyz): the cube rests on any face.
@@ -250,8 +250,8 @@ def rise_joints(init_joints: np.ndarray, start_height: float) -> np.ndarray:
 
 
 def _arms_touch_scene(scene: PickPlaceScene, data: mujoco.MjData, objects, object_pose, joints) -> bool:
-    """Whether an arm or its gripper touches the bin, the floor or an object (MuJoCo C's
-    collision) at ``joints`` [4, 6] with ``objects`` placed at ``object_pose`` [4, 7]; the
+    """Whether an arm or its gripper touches another arm, the bin, the floor or an object
+    (MuJoCo C's contacts in the run's own scene) at ``joints`` [4, 6] with ``objects`` placed at ``object_pose`` [4, 7]; the
     model's geom positions are set for ``objects``."""
     m = data.model
     m.geom_pos[:] = scene.geom_pos(objects)
@@ -267,9 +267,9 @@ def _arms_touch_scene(scene: PickPlaceScene, data: mujoco.MjData, objects, objec
 
 def sample_initial_joints(rng: np.random.Generator, clear=None, max_tries: int = 1000) -> np.ndarray:
     """[4, 6] home + U(-0.4, 0.4) per joint, redrawn until the team is collision-free with
-    every end effector above 0.2 m (the original's rule). The arms are checked against each
-    other by the collision model; ``clear(joints) -> bool`` (if given) checks the rest of
-    the scene, as the original checks every arm with its gripper against every other body."""
+    every end effector above 0.2 m (the original's rule), free in the collision model (the
+    policy's: arms, self, ground) and, where ``clear(joints) -> bool`` is given, in the
+    physics scene (every arm with its gripper against every other body, as the original)."""
     for _ in range(max_tries):
         joints = load_arm().home + rng.uniform(-INIT_NOISE, INIT_NOISE, (NUM_ARMS, 6))
         at = evaluate_arms(_base_poses(), joints)

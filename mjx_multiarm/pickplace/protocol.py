@@ -32,9 +32,16 @@ are interpolated. The policy observes every arm: an arm in a scripted phase appe
 current end-effector pose as its target, as in the original.
 
 Collision rules. The original's: an arm in a policy phase touching another arm, the floor,
-the bin or an object other than the one it holds ends the run. The project's stricter
-accounting also records (without ending the run) contacts in scripted phases, self
-collisions, and touching its own object outside the grasp (``to_grasp`` .. ``raise``).
+the bin or an object other than the one it holds ends the run. Every touch is a MuJoCo
+contact (arms with their grippers, fingers and pads, the bin, the floor, the objects: the
+scene's contact bits) at any physics step of the control step, as the original counted
+PyBullet's contact points. The project's stricter accounting also records (without ending
+the run) contacts in scripted phases, self collisions (the collision model's: an arm's own
+geoms do not collide in the physics), and touching its own object outside the grasp
+(``to_grasp`` .. ``raise``). The collision model's verdict (the reaching kernel, checked at
+the end of each control step, the gripper as the original's stand-in box) is kept beside it
+as ``kernel_cause``: the run's first collision under the original rule with arm-arm and
+arm-floor contacts taken from the kernel instead, recorded without ending the run.
 """
 
 from __future__ import annotations
@@ -84,8 +91,9 @@ MAX_CONTROL_STEPS = 100_000 // SUBSTEPS
 #: Why a run ended (``cause``), or the first stricter-accounting violation (``strict_cause``).
 CAUSES = ("none", "arm-arm", "arm-floor", "arm-bin", "arm-object", "arm-self", "outside-bin", "timeout")
 (NONE, ARM_ARM, ARM_FLOOR, ARM_BIN, ARM_OBJECT, ARM_SELF, OUTSIDE_BIN, TIMEOUT) = range(len(CAUSES))
-#: Physics contact kinds per arm (the sensors' ``contacts`` [4, 4]).
-TOUCH_FLOOR, TOUCH_BIN, TOUCH_OWN_OBJECT, TOUCH_OTHER_OBJECT = range(4)
+#: Physics contact kinds per arm (the sensors' ``contacts`` [4, TOUCH_KINDS]).
+TOUCH_FLOOR, TOUCH_BIN, TOUCH_OWN_OBJECT, TOUCH_OTHER_OBJECT, TOUCH_ARM = range(5)
+TOUCH_KINDS = 5
 
 
 @struct.dataclass
@@ -94,7 +102,7 @@ class Sensors:
 
     joints: jnp.ndarray  # [4, 6] measured arm joint angles
     object_pos: jnp.ndarray  # [4, 3] object slot positions
-    contacts: jnp.ndarray  # [4, 4] bool: touched floor / bin / own object / another object during the step
+    contacts: jnp.ndarray  # [4, TOUCH_KINDS] bool: touched floor / bin / own object / another object / another arm during the step
 
 
 @struct.dataclass
@@ -124,6 +132,7 @@ class ControllerState:
     cause: jnp.ndarray  # CAUSES index
     cause_phase: jnp.ndarray  # phase of the arm that caused the end (-1 if none)
     strict_cause: jnp.ndarray  # first stricter-accounting violation (NONE if none)
+    kernel_cause: jnp.ndarray  # first collision with arm-arm and arm-floor from the collision model (NONE if none)
 
 
 def bin_interior(scene: PickPlaceScene) -> np.ndarray:
@@ -152,7 +161,7 @@ def initial_state(plan: RunPlan) -> ControllerState:
         command=Commands(joints, jnp.zeros(NUM_ARMS, jnp.float32), jnp.zeros(NUM_ARMS, bool), jnp.zeros(NUM_ARMS, bool)),
         prev_joints=joints, prev_target_pos=frames.ee_pos, prev_target_quat=frames.ee_quat,
         step=jnp.int32(0), ended=jnp.bool_(False), success=jnp.bool_(False), cause=jnp.int32(NONE),
-        cause_phase=jnp.int32(-1), strict_cause=jnp.int32(NONE))
+        cause_phase=jnp.int32(-1), strict_cause=jnp.int32(NONE), kernel_cause=jnp.int32(NONE))
 
 
 def _move_steps(start, goal):
@@ -201,8 +210,7 @@ def make_controller(policy_step, scene: PickPlaceScene, max_steps: int = MAX_CON
         in_policy = _policy_phase(phase)
         attached = (phase > CLOSE) & (phase <= RELEASE)
         in_grasp = (phase >= GRASP_WINDOW[0]) & (phase <= GRASP_WINDOW[1])
-        arm_arm = kernel.between_arms < 0
-        floor = (kernel.ground < 0) | touch[:, TOUCH_FLOOR]
+        arm_arm, floor = touch[:, TOUCH_ARM], touch[:, TOUCH_FLOOR]
         bin_ = touch[:, TOUCH_BIN]
         objects = touch[:, TOUCH_OTHER_OBJECT] | (touch[:, TOUCH_OWN_OBJECT] & ~attached)
         original = [(ARM_ARM, in_policy & arm_arm), (ARM_FLOOR, in_policy & floor), (ARM_BIN, in_policy & bin_),
@@ -210,9 +218,12 @@ def make_controller(policy_step, scene: PickPlaceScene, max_steps: int = MAX_CON
         strict = [(ARM_ARM, arm_arm), (ARM_FLOOR, floor), (ARM_BIN, bin_),
                   (ARM_OBJECT, touch[:, TOUCH_OTHER_OBJECT] | (touch[:, TOUCH_OWN_OBJECT] & ~in_grasp)),
                   (ARM_SELF, kernel.within_arm < 0)]
+        by_kernel = [(ARM_ARM, in_policy & (kernel.between_arms < 0)), (ARM_FLOOR, in_policy & (kernel.ground < 0)),
+                     *original[2:]]
         collision = _first(original)
         culprit = jnp.argmax(jnp.stack([f for _, f in original]).any(axis=0))
         strict_now = _first(strict)
+        kernel_now = _first(by_kernel)
 
         # Phase transitions.
         target_pos, target_quat = policy_target(plan, phase)
@@ -266,6 +277,7 @@ def make_controller(policy_step, scene: PickPlaceScene, max_steps: int = MAX_CON
             cause=jnp.where(ends, cause, state.cause),
             cause_phase=jnp.where(ends & (collision != NONE), state.phase[culprit], state.cause_phase),
             strict_cause=jnp.where(~state.ended & (state.strict_cause == NONE), strict_now, state.strict_cause),
+            kernel_cause=jnp.where(~state.ended & (state.kernel_cause == NONE), kernel_now, state.kernel_cause),
         )
         # An ended run holds its last commands.
         held = Commands(state.command.arm_target, state.command.gripper, jnp.zeros(NUM_ARMS, bool), jnp.zeros(NUM_ARMS, bool))
@@ -276,8 +288,8 @@ def make_controller(policy_step, scene: PickPlaceScene, max_steps: int = MAX_CON
 
 
 def arm_contacts(scene: PickPlaceScene, geom1, geom2, dist, xp=np):
-    """[4, 4] bool per arm: touching the floor / the bin / its own object / another object,
-    from a contact list (``geom1``, ``geom2``, ``dist``; ``dist < 0`` is a touch). ``xp`` is
+    """[4, TOUCH_KINDS] bool per arm: touching the floor / the bin / its own object / another
+    object / another arm, from a contact list (``geom1``, ``geom2``, ``dist``; ``dist < 0`` is a touch). ``xp`` is
     numpy (MuJoCo C) or jax.numpy (MJX)."""
     kind = xp.asarray(scene.geom_kind)
     slot = xp.asarray(scene.geom_slot)
@@ -293,6 +305,7 @@ def arm_contacts(scene: PickPlaceScene, geom1, geom2, dist, xp=np):
             (mine & (other_kind == BIN)).any(axis=0),
             (mine & (other_kind == OBJECT) & (other_slot == arms[None, :])).any(axis=0),
             (mine & (other_kind == OBJECT) & (other_slot != arms[None, :])).any(axis=0),
+            (mine & (other_kind == ARM) & (other_slot != arms[None, :])).any(axis=0),
         ], axis=1))
     return flags[0] | flags[1]
 

@@ -12,10 +12,11 @@ convex pieces of every object; a run selects one object per slot and parks the o
 Grasping is a weld between ``ee_link`` and the slot body, off until the grasp; its relative
 pose is written at activation (``eq_data``).
 
-Contacts (contype/conaffinity): objects collide with the floor, the bin and each other; arm
-geoms (the collision capsules, the gripper box and the fingers) collide with the floor, the
-bin and objects. Arm-arm contact is not simulated: those collisions are detected with the
-project's collision kernel (the training model), and end a run before they could matter.
+Contacts (contype/conaffinity, :func:`arm_bits`): objects collide with the floor, the bin and
+each other; arm geoms (the collision capsules, the gripper box, the fingers and their pads)
+collide with the floor, the bin, objects and every other arm's geoms, not with their own
+arm's. Every collision a run counts comes from these contacts, at every physics step
+(:mod:`mjx_multiarm.pickplace.protocol`).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import pathlib
 import mujoco
 import numpy as np
 
+from mjx_multiarm.files import atomic_write
 from mjx_multiarm.geometry.robot import ARM_XML, load_arm
 
 ASSETS = pathlib.Path(__file__).resolve().parents[1] / "assets" / "pickplace.json"
@@ -62,13 +64,23 @@ PAD_HALF = np.array([0.01875, 0.011, 0.004])
 FINGER_KP = 200.0
 FINGER_FORCE = 60.0
 
-#: contype / conaffinity bits.
-STATIC_BITS = (1, 3)  # floor and bin: touched by objects and arms
+#: contype / conaffinity bits (MuJoCo makes a contact when one geom's contype shares a bit
+#: with the other's conaffinity): floor, bin and objects have contype 1 and conaffinity 3.
+STATIC_BITS = (1, 3)
 OBJECT_BITS = (1, 3)
-ARM_BITS = (2, 0)  # arms touch only what has bit 2 in conaffinity: floor, bin, objects
+#: Bit 2 in an arm's contype meets the static scene's and the objects' conaffinity; bit
+#: 4 << i marks arm i, in the conaffinity of every other arm (:func:`arm_bits`).
+ARM_STATIC_BIT, ARM_FIRST_BIT = 2, 4
 
 # Kinds of geom owners, for classifying contacts.
 FLOOR, BIN, ARM, OBJECT = 0, 1, 2, 3
+
+
+def arm_bits(arm: int) -> tuple[int, int]:
+    """(contype, conaffinity) of arm ``arm``'s geoms: they touch the floor, the bin, the
+    objects and the other arms, never their own arm."""
+    others = sum(ARM_FIRST_BIT << j for j in range(NUM_ARMS) if j != arm)
+    return ARM_STATIC_BIT | ARM_FIRST_BIT << arm, others
 
 
 @dataclasses.dataclass(frozen=True)
@@ -161,16 +173,17 @@ def _add_gripper(ee: mujoco.MjsBody) -> None:
         finger.mass = 0.05
         finger.inertia = [1e-5, 1e-5, 1e-5]
         finger.explicitinertial = True
-        kw = {"type": mujoco.mjtGeom.mjGEOM_BOX, "contype": ARM_BITS[0], "conaffinity": ARM_BITS[1], "group": 1,
-                  "rgba": [0.15, 0.15, 0.15, 1.0], "friction": [1.0, 0.005, 0.0001]}
+        kw = {"type": mujoco.mjtGeom.mjGEOM_BOX, "group": 1, "rgba": [0.15, 0.15, 0.15, 1.0],
+              "friction": [1.0, 0.005, 0.0001]}
         finger.add_geom(name=f"pad_{side}", pos=[PAD_CENTRE_X, 0.0, sign * PAD_HALF[2]], size=PAD_HALF, **kw)
         finger.add_geom(name=f"finger_{side}", pos=[0.10, 0.0, sign * (2 * PAD_HALF[2] + 0.006)],
                         size=[0.035, PAD_HALF[1], 0.006], **kw)
 
 
-def actuated_arm(gripper: bool = True, contacts: bool = True) -> mujoco.MjSpec:
+def actuated_arm(gripper: bool = True, bits: tuple[int, int] = (0, 0)) -> mujoco.MjSpec:
     """The project's UR5 with gravity compensation and joint armature (for its servos), and
-    optionally the gripper; ``contacts=False`` switches off all its contacts (pure dynamics)."""
+    optionally the gripper; every geom gets the contact ``bits`` (contype, conaffinity;
+    the default switches its contacts off: pure dynamics)."""
     arm = mujoco.MjSpec.from_file(str(ARM_XML))
     for geom in arm.geoms:
         geom.group = 1  # visible in renders
@@ -181,7 +194,7 @@ def actuated_arm(gripper: bool = True, contacts: bool = True) -> mujoco.MjSpec:
     if gripper:
         _add_gripper(arm.body("ee_link"))
     for geom in arm.geoms:
-        geom.contype, geom.conaffinity = ARM_BITS if contacts else (0, 0)
+        geom.contype, geom.conaffinity = bits
     for body in arm.bodies:
         body.gravcomp = 1.0
     return arm
@@ -204,7 +217,7 @@ def build_reaching_spec(num_arms: int) -> mujoco.MjSpec:
     spec.option.timestep = TIMESTEP
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     for i in range(num_arms):
-        spec.attach(actuated_arm(gripper=False, contacts=False), prefix=f"arm{i}/", frame=spec.worldbody.add_frame())
+        spec.attach(actuated_arm(gripper=False), prefix=f"arm{i}/", frame=spec.worldbody.add_frame())
         add_arm_servos(spec, f"arm{i}/")
     return spec
 
@@ -234,7 +247,7 @@ def build_spec(assets: PickPlaceAssets) -> mujoco.MjSpec:
             spec.add_mesh(name=f"{name}_{k}", uservert=hull.reshape(-1).tolist())
     for i in range(NUM_ARMS):
         frame = world.add_frame(pos=BASE_POS[i], quat=BASE_QUAT[i])
-        arm = actuated_arm()
+        arm = actuated_arm(bits=arm_bits(i))
         arm.body("base_link").mocap = False  # welded to the world at the frame
         spec.attach(arm, prefix=f"arm{i}/", frame=frame)
         add_arm_servos(spec, f"arm{i}/")
@@ -257,6 +270,18 @@ def build_spec(assets: PickPlaceAssets) -> mujoco.MjSpec:
                           objtype=mujoco.mjtObj.mjOBJ_BODY, active=False,
                           data=[0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 1, 0])
     return spec
+
+
+def write_scene(path, assets_path: str | None = None) -> None:
+    """Write the scene's MJCF to ``path`` (self-contained: the object pieces' vertices
+    inline), for MuJoCo's viewer or any MJCF tool."""
+    spec = build_spec(load_assets(assets_path))
+    m = spec.compile()  # MjSpec.to_xml needs a compiled spec
+    for body in spec.bodies:  # an explicit inertial whose frame the compiler chose: write that frame
+        if body.explicitinertial and np.isnan(body.ipos).any():
+            body.ipos, body.iquat = m.body(body.name).ipos, m.body(body.name).iquat
+    xml = spec.to_xml()
+    atomic_write(pathlib.Path(path), lambda f: f.write(xml.encode()))
 
 
 def _geom_owners(m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
