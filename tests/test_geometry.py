@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from mjx_multiarm.geometry.collision import segment_distance
@@ -32,8 +32,19 @@ def _brute_force(p1, q1, p2, q2, n=401):
     return np.min(np.linalg.norm(a[:, None] - b[None], axis=-1))
 
 
+def _near_parallel_error(p1, q1, p2, q2) -> float:
+    """How far the float32 kernel may overestimate for nearly parallel segments: below
+    sin^2 of about 1e-6 (float32's resolution of ``a e - b^2``) the segments count as parallel
+    and the kernel measures from an end of the first, off by at most the shorter length
+    times the sine of their angle (e.g. 1e-5 m for 1 m segments 1e-5 rad apart)."""
+    d1, d2 = q1 - p1, q2 - p2
+    sine = np.linalg.norm(np.cross(d1, d2)) / (np.linalg.norm(d1) * np.linalg.norm(d2))
+    return float(min(np.linalg.norm(d1), np.linalg.norm(d2)) * sine) if sine < 1e-3 else 0.0
+
+
 @settings(max_examples=200)
 @given(point, point, point, point)
+@example(np.array([0.0, 1.0, 0.0]), np.zeros(3), np.zeros(3), np.array([0.0, 1.0, 1.0761518751678523e-05]))
 def test_segment_distance_matches_dense_sampling(p1, q1, p2, q2):
     if min(np.linalg.norm(q1 - p1), np.linalg.norm(q2 - p2)) < 1e-3:
         return  # capsules always have a positive length
@@ -41,7 +52,7 @@ def test_segment_distance_matches_dense_sampling(p1, q1, p2, q2):
     brute = _brute_force(p1, q1, p2, q2)
     # The true minimum is at most the sampled one, and within the sampling step of it.
     step = (np.linalg.norm(q1 - p1) + np.linalg.norm(q2 - p2)) / 400
-    assert ours <= brute + 1e-5
+    assert ours <= brute + 1e-5 + _near_parallel_error(p1, q1, p2, q2)
     assert ours >= brute - step - 1e-5
 
 
