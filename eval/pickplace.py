@@ -76,10 +76,14 @@ COLLISIONS = ("arm-arm", "arm-floor", "arm-bin", "arm-object")
 @functools.cache
 def _policy_step(checkpoint: pathlib.Path | None, safe: bool = False):
     """The team step of the policy (once per process: the backends' compilations are reused
-    by every batch); ``safe`` shields it (:mod:`mjx_multiarm.env.shield`)."""
+    by every batch); ``safe`` shields it (:mod:`mjx_multiarm.env.shield`) with the scene's
+    collision model: the gripper as simulated, the bin and the floor
+    (:func:`mjx_multiarm.pickplace.scene.collision_model`)."""
+    from mjx_multiarm.pickplace.scene import collision_model
     from mjx_multiarm.planner.policy import Planner
 
-    return Planner.load(checkpoint, safe=safe).batched(4)
+    arm_xml, obstacles = collision_model()
+    return Planner.load(checkpoint, safe=safe, arm_xml=arm_xml, obstacles=obstacles).batched(4)
 
 
 def _run_mujoco_chunk(checkpoint, safe: bool, plans: RunPlan, max_steps: int) -> list[dict]:

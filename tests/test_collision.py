@@ -118,6 +118,41 @@ def test_signed_distances_match_mj_geom_distance(kernel):
     print(f"per-arm smallest distances vs mj_geomDistance ({active.sum()} arms): max difference {worst:.2e} m")
 
 
+#: Two static boxes, one turned about x and z, in the workspace of random 4-arm scenes.
+OBSTACLES = (((0.4, 0.0, 0.3), (1.0, 0.0, 0.0, 0.0), (0.1, 0.2, 0.3)),
+             ((-0.3, 0.3, 0.2), (0.8924, 0.3696, 0.0, 0.2588), (0.05, 0.3, 0.15)))
+
+
+def test_obstacle_distances_match_mj_geom_distance(monkeypatch):
+    """With static boxes in the scene, each arm's ``ground`` distance is the smallest of its
+    height and its distances to the boxes, as ``mj_geomDistance`` gives them on the same
+    model (the boxes are world geoms of its MJCF); the numba kernel refuses such scenes."""
+    scene = build_scene(4, None, OBSTACLES)
+    m, data = scene.mj_model, mujoco.MjData(scene.mj_model)
+    boxes = [m.geom(f"obstacle{k}").id for k in range(len(OBSTACLES))]
+    bases, joints, active = random_padded_scenes(np.random.default_rng(3), 60, 4)
+    ours = _jax_contacts(scene, bases, joints, active).ground
+    plain = _jax_contacts(build_scene(4), bases, joints, active).ground
+    near_box = 0
+    for k in range(len(bases)):
+        pos, quat = base_pose_arrays(bases[k])
+        set_mujoco_state(scene, data, pos, quat, joints[k], active[k])
+        for i in np.flatnonzero(active[k]):
+            to_box = min(mujoco.mj_geomDistance(m, data, b, scene.geoms[i, g], 100.0, None) for b in boxes for g in scene.pairs.ground)
+            theirs = min(to_box, *(mujoco.mj_geomDistance(m, data, scene.ground_geom, scene.geoms[i, g], 100.0, None)
+                                   for g in scene.pairs.ground))
+            assert (ours[k, i] < 0) == (theirs < 0), (k, i, ours[k, i], theirs)
+            if theirs >= 0:
+                np.testing.assert_allclose(ours[k, i], theirs, atol=1e-4)
+            near_box += to_box < plain[k, i]
+    assert near_box >= 20  # the boxes decide many arms' distances
+    monkeypatch.setenv(KERNEL_VARIABLE, "numba")
+    with pytest.raises(ValueError, match="numba collision kernel has no static obstacles"):
+        _jax_contacts(scene, bases[:1], joints[:1], active[:1])
+    with pytest.raises(ValueError, match="half sizes must be positive"):
+        build_scene(2, None, (((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.1, 0.0, 0.1)),))
+
+
 def test_geom_clearances_match_mj_geom_distance_per_geom():
     """Per collision geom of one arm, its signed distance to another arm is the smallest
     ``mj_geomDistance`` to that arm's geoms (apart: equal; penetrating: both negative)."""

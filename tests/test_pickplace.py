@@ -11,10 +11,13 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from conftest import random_joints
 
+from mjx_multiarm.geometry.collision import scene_contacts
 from mjx_multiarm.geometry.ik import solve_poses
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.geometry.scene import build_scene as build_arm_scene
 from mjx_multiarm.geometry.transforms import quat_angle
 from mjx_multiarm.pickplace import backends, plans, protocol
 from mjx_multiarm.pickplace.scene import (
@@ -22,10 +25,14 @@ from mjx_multiarm.pickplace.scene import (
     ASSETS,
     BASE_POS,
     BASE_QUAT,
+    GRIPPER_ARM_XML,
     GRIPPER_STROKE,
     NUM_ARMS,
+    OBJECT,
     PARKED_OFFSET,
     build_scene,
+    collision_model,
+    gripper_arm_xml,
 )
 from mjx_multiarm.planner.policy import Planner
 
@@ -201,6 +208,61 @@ def test_a_full_run_on_mujoco_puts_every_object_in_the_bin(scene):
     assert result.phases == ["done"] * NUM_ARMS
     assert all(abs(x) < 0.34 and abs(y) < 0.37 for x, y, _ in result.object_pos)
     assert 0 < result.control_steps < 600
+
+
+def test_the_gripper_asset_encloses_the_simulated_fingers(scene):
+    """``assets/ur5_gripper.xml`` is the current derivation, and its second ee_link box holds
+    every corner of the simulated fingers and pads at 11 openings (read off the physics
+    scene), which the original's stand-in box alone does not."""
+    assert GRIPPER_ARM_XML.read_text() == gripper_arm_xml()
+    arm = load_arm(str(GRIPPER_ARM_XML))
+    assert arm.box_names == ("ee_link_0", "ee_link_1")
+    m, data = scene.model, mujoco.MjData(scene.model)
+    ee = scene.ee_body[0]
+    fingers = [g for g in range(m.ngeom) if m.geom(g).name.startswith(("arm0/pad_", "arm0/finger_"))]
+    signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3, indexing="ij")).reshape(3, -1).T
+    outside_stand_in = 0
+    for travel in np.linspace(0.0, GRIPPER_STROKE / 2, 11):
+        data.qpos[scene.finger_qpos[0]] = travel
+        mujoco.mj_kinematics(m, data)
+        for g in fingers:
+            world = data.geom_xpos[g] + (signs * m.geom_size[g]) @ data.geom_xmat[g].reshape(3, 3).T
+            local = (world - data.xpos[ee]) @ data.xmat[ee].reshape(3, 3)
+            for box, inside in zip(range(2), (False, True)):
+                offset = np.abs((local - arm.box_frame[box, 0]) @ arm.box_frame[box, 1:].T) - arm.box_half[box]
+                if inside:
+                    assert offset.max() <= 1e-9, (m.geom(g).name, travel, offset.max())
+                else:
+                    outside_stand_in += (offset.max(axis=1) > 0).sum()
+    assert outside_stand_in > 0
+
+
+def test_the_collision_model_flags_every_physics_contact_of_the_arms(scene):
+    """On random configurations of the four arms (fingers open), every arm that touches the
+    bin, the floor or another arm in MuJoCo's physics scene is in collision in the pick-and-place
+    collision model (the gripper as simulated, the bin as obstacles); the reaching model (the
+    stand-in box, no bin) misses some of those arms."""
+    arm_xml, obstacles = collision_model()
+    rng = np.random.default_rng(4)
+    joints = random_joints(rng, (300, NUM_ARMS), spread=0.6)
+    pos, quat = (jnp.broadcast_to(jnp.asarray(x, jnp.float32), (300, *x.shape)) for x in (BASE_POS, BASE_QUAT))
+    active = jnp.ones((300, NUM_ARMS), bool)
+    verdict = {name: np.asarray(jax.jit(lambda *a, s=s: scene_contacts(s, *a).collided)(pos, quat, jnp.asarray(joints, jnp.float32), active))
+               for name, s in (("cell", build_arm_scene(NUM_ARMS, arm_xml, obstacles)), ("reaching", build_arm_scene(NUM_ARMS)))}
+    m, data = scene.model, mujoco.MjData(scene.model)
+    touched = np.zeros((300, NUM_ARMS), bool)
+    for k in range(300):
+        data.qpos[scene.arm_qpos] = joints[k]
+        data.qpos[scene.finger_qpos] = 0.0  # open
+        mujoco.mj_kinematics(m, data)
+        mujoco.mj_collision(m, data)
+        for g1, g2 in data.contact.geom[: data.ncon][data.contact.dist[: data.ncon] < 0]:
+            kinds = scene.geom_kind[[g1, g2]]
+            if ARM in kinds and OBJECT not in kinds:
+                touched[k, scene.geom_slot[[g1, g2]][kinds == ARM]] = True
+    assert touched.sum() >= 30
+    assert not (touched & ~verdict["cell"]).any(), np.argwhere(touched & ~verdict["cell"])[:5]
+    assert (touched & ~verdict["reaching"]).any()
 
 
 def test_timeouts_and_collisions_end_runs(scene):

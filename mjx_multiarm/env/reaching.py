@@ -71,7 +71,7 @@ from mjx_multiarm.geometry.collision import (
 )
 from mjx_multiarm.geometry.kinematics import ArmFrames, forward_kinematics
 from mjx_multiarm.geometry.robot import NUM_JOINTS, ArmModel
-from mjx_multiarm.geometry.scene import Scene, build_scene
+from mjx_multiarm.geometry.scene import Obstacle, Scene, build_scene
 from mjx_multiarm.geometry.transforms import quat_angle
 from mjx_multiarm.options import option
 from mjx_multiarm.tasks.dynamic import PATH_SAMPLES, path_lengths, target_at
@@ -220,9 +220,13 @@ def step_limits(arm: ArmModel, resolution: float = SWEEP_RESOLUTION) -> tuple[np
 class ReachingEnv:
     """Multi-arm reaching in a padded scene of ``max_arms`` slots."""
 
-    def __init__(self, max_arms: int = 10, config: EnvConfig = EnvConfig()):
+    def __init__(self, max_arms: int = 10, config: EnvConfig = EnvConfig(), arm_xml: str | None = None,
+                 obstacles: tuple[Obstacle, ...] = ()):
+        """``arm_xml`` and ``obstacles`` change the collision model (:func:`build_scene`: an arm
+        carrying a tool, a bin): the arms' verdicts and the shield see them, the observation
+        does not (the policy observes the arms' link points and targets only)."""
         self.config = config
-        self.scene: Scene = build_scene(max_arms)
+        self.scene: Scene = build_scene(max_arms, arm_xml, obstacles)
         self.max_arms = max_arms
         arm = self.scene.arm
         self.rewards = REWARDS[config.reward]

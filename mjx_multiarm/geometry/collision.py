@@ -9,7 +9,9 @@ exact while the geoms are apart (what MuJoCo C's ``mj_geomDistance`` computes):
 - box-box: apart (separating-axis test), the smallest of one box's 12 edges against the
   other box and the other box's 8 corners against the first; overlapping, the test's
   penetration;
-- ground: the lowest capsule end minus the radius, the lowest box corner.
+- ground: the lowest capsule end minus the radius, the lowest box corner;
+- static obstacles (boxes of the scene, :func:`mjx_multiarm.geometry.scene.build_scene`):
+  as capsule-box and box-box, reported with the ground (``Contacts.ground``).
 
 Distances are signed: negative means penetration (for a segment that enters a box, the
 depth of the middle of its part inside). The pairs checked are those of
@@ -20,7 +22,7 @@ any backend (coordinates as separate x/y/z arrays, so that XLA fuses each check 
 elementwise loop over all pairs of all scenes), and ``"numba"``, the same distances compiled
 for the CPU with a broad phase (:func:`mjx_multiarm.geometry.compiled.batch_contacts`),
 called from traced code through ``jax.pure_callback``. :func:`default_kernel` picks numba for
-multi-arm scenes on the CPU backend and XLA otherwise.
+multi-arm scenes without obstacles on the CPU backend and XLA otherwise.
 """
 
 from __future__ import annotations
@@ -73,7 +75,7 @@ class Contacts:
 
     between_arms: jnp.ndarray
     within_arm: jnp.ndarray  # non-adjacent links of the arm itself
-    ground: jnp.ndarray
+    ground: jnp.ndarray  # the static scene: the ground and the scene's obstacle boxes
 
     @property
     def min_distance(self) -> jnp.ndarray:
@@ -329,23 +331,42 @@ def _self_pair_distances(types, pairs) -> jnp.ndarray:
 
 
 def ground_geoms(scene: Scene) -> np.ndarray:
-    """The geoms checked against the ground, in the order of :func:`self_and_ground_distances`."""
+    """The geoms checked against the ground and the obstacles, in the order of
+    :func:`self_and_ground_distances`."""
     g, ncap = scene.pairs.ground, scene.arm.num_capsules
     return np.concatenate([g[g < ncap], g[g >= ncap]])
 
 
+def _obstacle_geoms(scene: Scene, dtype) -> _Geoms:
+    """The scene's static obstacle boxes in the kernel layout, broadcasting against arm geoms
+    [.., A, G, 1, N] along a third middle axis: centre [3, 1, 1, K, 1], axes [3, 3, 1, 1, K, 1]."""
+    frames = jnp.asarray(scene.obstacle_frames, dtype)  # [K, 4, 3]
+    centre = frames[:, 0].T[:, None, None, :, None]
+    axes = jnp.transpose(frames[:, 1:], (1, 2, 0))[:, :, None, None, :, None]
+    half = jnp.asarray(scene.obstacle_half.T, dtype)[:, None, None, :, None]
+    return _Geoms(True, (centre, axes, half), middle=3)
+
+
 def _ground_distances(scene: Scene, types) -> jnp.ndarray:
-    """Height above the ground of each geom of :func:`ground_geoms`: [A, G, N] (a capsule's
-    lowest end minus its radius, a box's lowest corner)."""
+    """Distance to the static scene of each geom of :func:`ground_geoms`: [A, G, N], the smaller
+    of its height above the ground (a capsule's lowest end minus its radius, a box's lowest
+    corner) and its signed distance to the nearest obstacle box."""
     g, ncap = scene.pairs.ground, scene.arm.num_capsules
-    (p, q, radius), lowest = types[0].arrays, []
-    if (g < ncap).any():
-        gc = g[g < ncap]
-        lowest.append(jnp.minimum(p[2][:, gc], q[2][:, gc]) - radius[0, gc])
-    if (g >= ncap).any():
-        centre, axes, half = types[-1].arrays
-        gx = g[g >= ncap] - ncap
-        lowest.append(centre[2][:, gx] - (half[:, :, gx] * jnp.abs(axes[:, 2][:, :, gx])).sum(axis=0))
+    lowest = []
+    for t in types:  # capsules, then boxes
+        chosen = g[g >= ncap] - ncap if t.is_box else g[g < ncap]
+        if not len(chosen):
+            continue
+        if t.is_box:
+            centre, axes, half = t.arrays
+            height = centre[2][:, chosen] - (half[:, :, chosen] * jnp.abs(axes[:, 2][:, :, chosen])).sum(axis=0)
+        else:
+            p, q, radius = t.arrays
+            height = jnp.minimum(p[2][:, chosen], q[2][:, chosen]) - radius[0, chosen]
+        if len(scene.obstacle_half):
+            obstacles = _pair_distance(t.take(1, chosen).expand(2), _obstacle_geoms(scene, height.dtype))
+            height = jnp.minimum(height, obstacles.min(axis=2))
+        lowest.append(height)
     return jnp.concatenate(lowest, axis=1)
 
 
@@ -415,15 +436,22 @@ def geom_clearances(scene: Scene, capsules, boxes, other_capsules, other_boxes) 
     return jnp.concatenate(rows, axis=0).T.reshape(*batch, -1)
 
 
-def default_kernel(max_arms: int) -> str:
+def default_kernel(scene: Scene) -> str:
     """``$MJX_MULTIARM_COLLISION_KERNEL`` if set (read when a function is traced), else
-    ``"numba"`` for multi-arm scenes on the CPU backend and ``"xla"`` otherwise: with one
-    arm there are no pairs between arms to skip, and the XLA kernel was faster (2.5x on
-    the core benchmark, ``benchmarks/RESULTS.md``)."""
-    numba_wins = jax.default_backend() == "cpu" and max_arms > 1
-    kernel = os.environ.get(KERNEL_VARIABLE) or ("numba" if numba_wins else "xla")
+    ``"numba"`` for multi-arm scenes without obstacles on the CPU backend and ``"xla"``
+    otherwise: with one arm there are no pairs between arms to skip, and the XLA kernel was
+    faster (2.5x on the core benchmark, ``benchmarks/RESULTS.md``); the numba kernel has no
+    obstacles (a scene with them runs the XLA kernel)."""
+    numba_wins = jax.default_backend() == "cpu" and scene.max_arms > 1 and not len(scene.obstacle_half)
+    return _checked_kernel(scene, os.environ.get(KERNEL_VARIABLE) or ("numba" if numba_wins else "xla"))
+
+
+def _checked_kernel(scene: Scene, kernel: str) -> str:
     if kernel not in KERNELS:
-        raise ValueError(f"{KERNEL_VARIABLE}={kernel!r}: expected one of {KERNELS}")
+        raise ValueError(f"collision kernel {kernel!r} ({KERNEL_VARIABLE} or kernel=): expected one of {KERNELS}")
+    if kernel == "numba" and len(scene.obstacle_half):
+        raise ValueError(f"the numba collision kernel has no static obstacles, and this scene has {len(scene.obstacle_half)}: "
+                         "use kernel='xla'")
     return kernel
 
 
@@ -450,10 +478,7 @@ def geom_contacts(scene: Scene, capsules, boxes, active, chunk: int | None = Non
     whole batch of scenes at once (vectorized over scenes, chunked on CPU), however it is
     called.
     """
-    if kernel is None:
-        kernel = default_kernel(scene.max_arms)
-    elif kernel not in KERNELS:
-        raise ValueError(f"kernel {kernel!r}: expected one of {KERNELS}")
+    kernel = default_kernel(scene) if kernel is None else _checked_kernel(scene, kernel)
     return _batched_kernel(scene, chunk, kernel, max_distance=float(max_distance))(capsules, boxes, active)
 
 
@@ -609,7 +634,7 @@ def scene_contacts(scene: Scene, base_pos, base_quat, joints, active, max_distan
       joints: [..., max_arms, 6]; active: [..., max_arms] bool.
       max_distance: as :func:`geom_contacts`'s.
     """
-    if default_kernel(scene.max_arms) == "numba":  # the kernel poses the arms itself
+    if default_kernel(scene) == "numba":  # the kernel poses the arms itself
         joints = jnp.asarray(joints)
         return _joint_kernel(scene, float(max_distance))(jnp.asarray(base_pos), jnp.asarray(base_quat),
                                                          joints[..., None, :, :], active)
@@ -640,7 +665,7 @@ def swept_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, ac
     def joints_at(fraction):
         return joints_from + fraction * (joints_to - joints_from)
 
-    if default_kernel(scene.max_arms) == "numba":  # one call that poses every configuration: each one's distances bound the next's
+    if default_kernel(scene) == "numba":  # one call that poses every configuration: each one's distances bound the next's
         shape = jnp.broadcast_shapes(jnp.shape(joints_from), jnp.shape(joints_to))
         configs = [jnp.moveaxis(jax.vmap(joints_at)(fractions), 0, -3)] if inner else []
         if end_frames is not None:  # the end configuration as given (the kernel poses it again: cheaper than its geoms)

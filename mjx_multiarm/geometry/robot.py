@@ -76,7 +76,7 @@ def _custom_text(m: mujoco.MjModel, name: str) -> str:
     return bytes(m.text_data[start : start + m.text_size[i]]).rstrip(b"\0").decode()
 
 
-def _geom_rotation(m: mujoco.MjModel, g: int) -> np.ndarray:
+def geom_rotation(m: mujoco.MjModel, g: int) -> np.ndarray:
     """Rotation [3, 3] of geom ``g`` in its body frame (columns: the geom's axes)."""
     rot = np.empty(9)
     mujoco.mju_quat2Mat(rot, m.geom_quat[g])
@@ -85,7 +85,7 @@ def _geom_rotation(m: mujoco.MjModel, g: int) -> np.ndarray:
 
 def _capsule_ends(m: mujoco.MjModel, g: int) -> np.ndarray:
     """Segment end points of capsule ``g`` in its body frame."""
-    axis = _geom_rotation(m, g)[:, 2] * m.geom_size[g, 1]
+    axis = geom_rotation(m, g)[:, 2] * m.geom_size[g, 1]
     return np.stack([m.geom_pos[g] - axis, m.geom_pos[g] + axis])
 
 
@@ -124,7 +124,7 @@ def load_arm(xml_path: str | None = None) -> ArmModel:
         capsule_radius=m.geom_size[geoms, 0].copy(),
         box_names=tuple(m.geom(g).name for g in boxes),
         box_body=np.array([m.geom_bodyid[g] - 1 for g in boxes], dtype=int),
-        box_frame=np.array([np.vstack([m.geom_pos[g], _geom_rotation(m, g).T]) for g in boxes]).reshape(-1, 4, 3),
+        box_frame=np.array([np.vstack([m.geom_pos[g], geom_rotation(m, g).T]) for g in boxes]).reshape(-1, 4, 3),
         box_half=m.geom_size[boxes].reshape(-1, 3).copy(),
         ee_body=int(m.site_bodyid[ee] - 1),
         ee_pos=m.site_pos[ee].copy(),

@@ -1,4 +1,5 @@
-"""The padded multi-arm scene: one MuJoCo model with ``max_arms`` UR5 slots and a ground.
+"""The padded multi-arm scene: one MuJoCo model with ``max_arms`` UR5 slots, a ground and,
+optionally, static box obstacles (a bin, a table).
 
 A task with k arms activates k slots; the others are masked out of every computation
 (:mod:`mjx_multiarm.geometry.collision`), so one compiled function serves every team size. The
@@ -7,7 +8,9 @@ the prefix ``arm{i}/``; its base is a mocap body placed at the arm's base pose.
 
 Which geom pairs can collide is read off the compiled model with MuJoCo's own filtering
 rules (contype/conaffinity, weld bodies, parent-child filter, ``<exclude>``), so the JAX
-collision kernel and MuJoCo C (``mj_collision``) check exactly the same pairs.
+collision kernel and MuJoCo C (``mj_collision``) check exactly the same pairs. Obstacles are
+world geoms like the ground: MuJoCo filters them alike, so each arm geom checked against the
+ground is checked against every obstacle, and the kernels report both as one distance.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import functools
 import mujoco
 import numpy as np
 
-from mjx_multiarm.geometry.robot import ARM_XML, ArmModel, load_arm
+from mjx_multiarm.geometry.robot import ARM_XML, ArmModel, geom_rotation, load_arm
 
 #: Where MuJoCo-side models park inactive slots: far apart and far from every task.
 PARKING_ORIGIN = np.array([1000.0, 0.0, 0.0])
@@ -54,12 +57,18 @@ class Scene:
     pairs: CollisionPairs
     geoms: np.ndarray  # [max_arms, ngeom] MuJoCo geom ids of each slot's collision geoms
     ground_geom: int
+    obstacle_frames: np.ndarray  # [K, 4, 3] each static obstacle box's centre, then its unit x, y, z axes (world)
+    obstacle_half: np.ndarray  # [K, 3] their half sizes
     mocap_ids: np.ndarray  # [max_arms] mocap index of each slot's base
     qpos_adr: np.ndarray  # [max_arms, 6] qpos address of each slot's joints
 
 
-def build_spec(max_arms: int = 10, arm_xml: str | None = None) -> mujoco.MjSpec:
-    """Compose the padded scene: ground plane, light, and ``max_arms`` arm slots."""
+#: A static obstacle box: (centre [3], orientation wxyz [4], half sizes [3]), world frame, m.
+Obstacle = tuple[tuple[float, float, float], tuple[float, float, float, float], tuple[float, float, float]]
+
+
+def build_spec(max_arms: int = 10, arm_xml: str | None = None, obstacles: tuple[Obstacle, ...] = ()) -> mujoco.MjSpec:
+    """Compose the padded scene: ground plane, light, the ``obstacles`` and ``max_arms`` arm slots."""
     if not 1 <= max_arms <= 64:
         raise ValueError(f"max_arms must be in [1, 64], got {max_arms}")
     spec = mujoco.MjSpec()
@@ -68,6 +77,11 @@ def build_spec(max_arms: int = 10, arm_xml: str | None = None) -> mujoco.MjSpec:
         name="ground", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05], rgba=[0.9, 0.9, 0.9, 1]
     )
     spec.worldbody.add_light(pos=[0, 0, 4], dir=[0, 0, -1], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
+    for k, (pos, quat, half) in enumerate(obstacles):
+        if min(half) <= 0:
+            raise ValueError(f"obstacle {k}: half sizes must be positive, got {half}")
+        spec.worldbody.add_geom(name=f"obstacle{k}", type=mujoco.mjtGeom.mjGEOM_BOX, pos=pos, quat=quat, size=half,
+                                rgba=[0.35, 0.55, 0.85, 1])
     exempt = load_arm(arm_xml).ground_exempt_bodies
     for i in range(max_arms):
         arm = mujoco.MjSpec.from_file(str(arm_xml or ARM_XML))  # a fresh copy per slot
@@ -112,10 +126,12 @@ def _collision_pairs(m: mujoco.MjModel, geoms: np.ndarray, ground: int) -> Colli
 
 
 @functools.cache
-def build_scene(max_arms: int = 10, arm_xml: str | None = None) -> Scene:
-    """Build (once per argument set) the padded scene with ``max_arms`` slots."""
+def build_scene(max_arms: int = 10, arm_xml: str | None = None, obstacles: tuple[Obstacle, ...] = ()) -> Scene:
+    """Build (once per argument set) the padded scene with ``max_arms`` slots, the arm of
+    ``arm_xml`` (default: the packaged UR5) and the static ``obstacles``."""
     arm = load_arm(arm_xml)
-    m = build_spec(max_arms, arm_xml).compile()
+    m = build_spec(max_arms, arm_xml, obstacles).compile()
+    boxes = [m.geom(f"obstacle{k}").id for k in range(len(obstacles))]
     geoms = np.array([[m.geom(f"arm{i}/{name}").id for name in arm.geom_names] for i in range(max_arms)])
     ground = m.geom("ground").id
     return Scene(
@@ -125,6 +141,8 @@ def build_scene(max_arms: int = 10, arm_xml: str | None = None) -> Scene:
         pairs=_collision_pairs(m, geoms, ground),
         geoms=geoms,
         ground_geom=ground,
+        obstacle_frames=np.array([np.vstack([m.geom_pos[g], geom_rotation(m, g).T]) for g in boxes]).reshape(-1, 4, 3),
+        obstacle_half=m.geom_size[boxes].reshape(-1, 3).copy(),
         mocap_ids=np.array([m.body_mocapid[m.body(f"arm{i}/base_link").id] for i in range(max_arms)]),
         qpos_adr=np.array(
             [[m.jnt_qposadr[m.joint(f"arm{i}/{j}").id] for j in arm.joint_names] for i in range(max_arms)]

@@ -33,6 +33,7 @@ from mjx_multiarm.files import atomic_write
 from mjx_multiarm.geometry.robot import ARM_XML, load_arm
 
 ASSETS = pathlib.Path(__file__).resolve().parents[1] / "assets" / "pickplace.json"
+GRIPPER_ARM_XML = ASSETS.parent / "ur5_gripper.xml"
 NUM_ARMS = 4
 #: (x, y, yaw) of each base (the original demo's ``robot_base_poses``), at z = BASE_HEIGHT.
 ARM_BASES = np.array([[0.6, 0.6, 0.0], [0.6, -0.6, 0.0], [-0.6, 0.6, np.pi], [-0.6, -0.6, np.pi]])
@@ -282,6 +283,70 @@ def write_scene(path, assets_path: str | None = None) -> None:
             body.ipos, body.iquat = m.body(body.name).ipos, m.body(body.name).iquat
     xml = spec.to_xml()
     atomic_write(pathlib.Path(path), lambda f: f.write(xml.encode()))
+
+
+def finger_envelope() -> tuple[np.ndarray, np.ndarray]:
+    """(centre, half sizes) [3] in the ee_link frame of the box that encloses both simulated
+    fingers and their pads at every opening: the union of their boxes' bounds, open and
+    closed (the fingers slide in a straight line, so every opening lies between the two)."""
+    m = actuated_arm().compile()
+    data = mujoco.MjData(m)
+    ee = m.body("ee_link").id
+    geoms = [g for g in range(m.ngeom) if m.geom(g).name.startswith(("pad_", "finger_"))]
+    slides = [m.jnt_qposadr[m.joint(f"finger_{side}").id] for side in ("left", "right")]
+    signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3, indexing="ij")).reshape(3, -1).T  # [8, 3]
+    corners = []
+    for travel in (0.0, GRIPPER_STROKE / 2):
+        data.qpos[slides] = travel
+        mujoco.mj_kinematics(m, data)
+        for g in geoms:
+            world = data.geom_xpos[g] + (signs * m.geom_size[g]) @ data.geom_xmat[g].reshape(3, 3).T
+            corners.append((world - data.xpos[ee]) @ data.xmat[ee].reshape(3, 3))
+    corners = np.concatenate(corners)
+    low, high = corners.min(axis=0), corners.max(axis=0)
+    return (low + high) / 2, (high - low) / 2
+
+
+def gripper_arm_xml() -> str:
+    """The arm MJCF of the pick-and-place collision model: the project's UR5 (its capsules and
+    the original's gripper stand-in box) plus ``ee_link_1``, the box of :func:`finger_envelope`
+    rounded out to 0.1 mm, inserted after the stand-in box (the rest of the file unchanged).
+    ``assets/ur5_gripper.xml`` holds it (written by :func:`write_gripper_arm`; the tests check
+    it is current)."""
+    centre, half = finger_envelope()
+    low, high = np.floor((centre - half) * 1e4) / 1e4, np.ceil((centre + half) * 1e4) / 1e4
+    numbers = lambda x: " ".join(f"{v:.5f}".rstrip("0").rstrip(".") for v in x)  # noqa: E731
+    lines = ARM_XML.read_text().splitlines(keepends=True)
+    stand_in = [k for k, line in enumerate(lines) if 'name="ee_link_0"' in line]
+    if len(stand_in) != 1:
+        raise ValueError(f"{ARM_XML}: expected one ee_link_0 geom line, found {len(stand_in)}")
+    indent = lines[stand_in[0]][: len(lines[stand_in[0]]) - len(lines[stand_in[0]].lstrip())]
+    box = (f"{indent}<!-- Both simulated fingers and pads at every opening (pickplace.scene.finger_envelope). -->\n"
+           f'{indent}<geom class="collision" type="box" name="ee_link_1" pos="{numbers((low + high) / 2)}" '
+           f'size="{numbers((high - low) / 2)}"/>\n')
+    return "".join(lines[: stand_in[0] + 1]) + box + "".join(lines[stand_in[0] + 1:])
+
+
+def write_gripper_arm(path=GRIPPER_ARM_XML) -> None:
+    """Write :func:`gripper_arm_xml` to ``path`` (default: the packaged asset)."""
+    xml = gripper_arm_xml()
+    atomic_write(pathlib.Path(path), lambda f: f.write(xml.encode()))
+
+
+@functools.cache
+def collision_model(assets_path: str | None = None) -> tuple[str, tuple]:
+    """``(arm_xml, obstacles)`` of the pick-and-place scene for :class:`mjx_multiarm.planner.Planner`
+    and :class:`mjx_multiarm.env.reaching.ReachingEnv`: the arm with the gripper as simulated
+    (:func:`gripper_arm_xml`) and the bin's boxes as static obstacles; the floor (top face at
+    z = 0) is the collision model's ground. The objects are not in it: neither the one an
+    arm carries nor those on the floor."""
+    m = build_scene(assets_path).model
+    bins = np.flatnonzero(_geom_owners(m)[0] == BIN)
+    if np.any(m.body_pos[m.body("bin").id]) or not np.array_equal(m.body_quat[m.body("bin").id], [1.0, 0.0, 0.0, 0.0]):
+        raise AssertionError("the bin body must sit at the world origin")
+    obstacles = tuple((tuple(m.geom_pos[g].tolist()), tuple(m.geom_quat[g].tolist()), tuple(m.geom_size[g].tolist()))
+                      for g in bins)
+    return str(GRIPPER_ARM_XML), obstacles
 
 
 def _geom_owners(m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:

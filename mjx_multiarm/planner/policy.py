@@ -42,6 +42,7 @@ from mjx_multiarm.geometry.collision import scene_contacts
 from mjx_multiarm.geometry.evaluate import base_pose_arrays, check_finite, evaluate_arms
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import NUM_JOINTS
+from mjx_multiarm.geometry.scene import Obstacle
 from mjx_multiarm.geometry.transforms import quat_angle, xyzw_to_wxyz
 from mjx_multiarm.planner.policy_file import LoadedPolicy, load_policy
 
@@ -85,11 +86,15 @@ def policy_env_settings(env: ReachingEnv) -> dict:
 class Planner:
     """Closed-loop planner from a policy file (see the module docstring)."""
 
-    def __init__(self, policy: LoadedPolicy, neighbour_radius: float | None = None, safe: bool = False):
+    def __init__(self, policy: LoadedPolicy, neighbour_radius: float | None = None, safe: bool = False,
+                 arm_xml: str | None = None, obstacles: tuple[Obstacle, ...] = ()):
         """``neighbour_radius`` (m) replaces the radius the policy file records (0 blinds the
         policy to its neighbours, as the individualistic ablation); ``safe`` shields every
-        team step (module docstring)."""
+        team step (module docstring); ``arm_xml`` and ``obstacles`` give the collision model
+        the arm as it is equipped and the static scene (:class:`ReachingEnv`): the shield and
+        the reported collisions see them, the policy's observation does not."""
         self.policy = policy
+        self._collision_model = (arm_xml, tuple(obstacles))
         env = policy.env
         action_scale = np.asarray(env["action_scale"], np.float64)
         if action_scale.shape != (NUM_JOINTS,):
@@ -101,17 +106,17 @@ class Planner:
         self._compiled: dict = {}
 
     @classmethod
-    def load(cls, path: str | os.PathLike | None = None, neighbour_radius: float | None = None, safe: bool = False) -> Planner:
+    def load(cls, path: str | os.PathLike | None = None, neighbour_radius: float | None = None, safe: bool = False,
+             arm_xml: str | None = None, obstacles: tuple[Obstacle, ...] = ()) -> Planner:
         """The planner of policy file ``path``, or of a run directory's ``policy.npz`` (default:
-        the shipped policy); ``neighbour_radius`` (m) replaces the radius the file records (0
-        blinds the policy to its neighbours); ``safe`` shields every team step."""
+        the shipped policy); the other arguments as the constructor's."""
         path = pathlib.Path(SHIPPED_POLICY if path is None else path)
-        return cls(load_policy(path / "policy.npz" if path.is_dir() else path), neighbour_radius, safe)
+        return cls(load_policy(path / "policy.npz" if path.is_dir() else path), neighbour_radius, safe, arm_xml, obstacles)
 
     def environment(self, num_arms: int, **settings) -> ReachingEnv:
         """An environment of ``num_arms`` slots with the policy's action scale and neighbour
         radius (and ``settings``, :class:`EnvConfig` fields, e.g. ``dynamic_targets=True``)."""
-        return ReachingEnv(num_arms, dataclasses.replace(self.env_config, **settings))
+        return ReachingEnv(num_arms, dataclasses.replace(self.env_config, **settings), *self._collision_model)
 
     def _env(self, num_arms: int) -> ReachingEnv:
         if ("env", num_arms) not in self._compiled:
