@@ -39,9 +39,15 @@ PyBullet's contact points. The project's stricter accounting also records (witho
 the run) contacts in scripted phases, self collisions (the collision model's: an arm's own
 geoms do not collide in the physics), and touching its own object outside the grasp
 (``to_grasp`` .. ``raise``). The collision model's verdict (the reaching kernel, checked at
-the end of each control step, the gripper as the original's stand-in box) is kept beside it
-as ``kernel_cause``: the run's first collision under the original rule with arm-arm and
+the end of each control step, the gripper as the original's stand-in box, no bin) is kept
+beside it as ``kernel_cause``: the run's first collision under the original rule with arm-arm and
 arm-floor contacts taken from the kernel instead, recorded without ending the run.
+
+Shielded runs (``eval.pickplace --safe``) certify every team step in the cell's collision
+model (:func:`mjx_multiarm.pickplace.scene.collision_model`: the arms' capsules, the stand-in
+box and a box enclosing the simulated fingers and pads, the bin's boxes, the floor). It
+does not hold the objects (neither one carried nor those on the floor), and the policy's
+observation sees none of it beyond the arms' link points (as the paper's).
 """
 
 from __future__ import annotations

@@ -10,9 +10,10 @@
 Each call evaluates every arm's policy on its own decentralized observation (its
 neighbours within the policy's radius) and returns the next joint waypoint of every arm
 (one control step of 50 ms, within the velocity and joint limits). With ``safe=True`` each
-team step is first checked with the swept collision check, and arms whose motions would
+team step is first checked with the certified motion check, and arms whose motions would
 collide step away from the others or hold (:mod:`mjx_multiarm.env.shield`): the waypoints never collide in the
-model (given a collision-free start). Arms may stand anywhere
+model (given a collision-free start). The model is the arms' collision geometry and the
+ground, or what ``arm_xml`` and ``obstacles`` give (a tool on the arm, a bin). Arms may stand anywhere
 and there may be any number of them: the observation is built for exactly the arms given.
 :meth:`Planner.batched` is the jittable JAX path for batches of teams.
 
