@@ -6,6 +6,13 @@ from __future__ import annotations
 import os
 import pathlib
 
+# The fast tier is mostly XLA compilation of small programs: unoptimized code generation
+# compiles them faster (the two slowest tests: -14 % in all, benchmarks/RESULTS.md, issue 51)
+# and runs them slower, which tiny test batches do not notice. Set before JAX starts its
+# backend; an XLA_FLAGS that sets the level already wins.
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+
 import jax
 import jax.numpy as jnp
 import numpy as np

@@ -292,6 +292,11 @@ def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None, approac
         raise ValueError(f"approach_height must be in [0, 0.5] m, got {approach_height}")
     if not 0 <= start_height <= 0.8:
         raise ValueError(f"start_height must be in [0, 0.8] m, got {start_height}")
+    fixed = None
+    if objects is not None:  # checked before the grasp table's IK compiles
+        if len(objects) != NUM_ARMS:
+            raise ValueError(f"objects: the layout needs one object per arm ({NUM_ARMS}), got {len(objects)}")
+        fixed = np.array([scene.object_index(o) if isinstance(o, str) else int(o) for o in objects])
     table = grasp_table(scene)
     nobj = len(scene.object_names)
     above_pos = table["reach_pos"] + [0.0, 0.0, approach_height]
@@ -299,11 +304,6 @@ def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None, approac
     above_joints = typical_joints(arm_rows, above_pos.reshape(-1, 3))
     above = forward_kinematics(load_arm(), BASE_POS[arm_rows], BASE_QUAT[arm_rows], jnp.asarray(above_joints))
     above_quat = np.asarray(above.ee_quat, np.float64).reshape(NUM_ARMS, nobj, 4)
-    fixed = None
-    if objects is not None:
-        if len(objects) != NUM_ARMS:
-            raise ValueError(f"objects: the layout needs one object per arm ({NUM_ARMS}), got {len(objects)}")
-        fixed = np.array([scene.object_index(o) if isinstance(o, str) else int(o) for o in objects])
     plans = []
     arms = np.arange(NUM_ARMS)
     data = mujoco.MjData(copy.deepcopy(scene.model))
