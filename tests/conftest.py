@@ -6,13 +6,6 @@ from __future__ import annotations
 import os
 import pathlib
 
-# The fast tier is mostly XLA compilation of small programs: unoptimized code generation
-# compiles them faster (the two slowest tests: -14 % in all, benchmarks/RESULTS.md, issue 51)
-# and runs them slower, which tiny test batches do not notice. Set before JAX starts its
-# backend; an XLA_FLAGS that sets the level already wins.
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -42,6 +35,17 @@ _CACHE = os.environ.get("MJX_MULTIARM_TEST_CACHE", str(pathlib.Path(__file__).re
 if _CACHE:
     jax.config.update("jax_compilation_cache_dir", _CACHE)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def pytest_configure(config):
+    """The fast tier (``-m 'not slow'``, the default) is mostly XLA compilation of small
+    programs: it compiles them with unoptimized code generation, faster to compile and slower
+    to run, which its tiny batches do not notice (benchmarks/RESULTS.md, issue 51). The slow
+    tier's training runs keep XLA's default. Set before JAX starts its backend (no test module
+    starts it at import); an ``XLA_FLAGS`` that sets the level already wins."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if config.getoption("markexpr") == "not slow" and "xla_backend_optimization_level" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_backend_optimization_level=0".strip()
 
 
 @pytest.fixture
