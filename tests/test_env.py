@@ -73,7 +73,7 @@ def test_potential_shaping_pays_for_progress_and_telescopes(generated, scripted)
     env = ReachingEnv(1, EnvConfig(max_steps=150, shaping=k))
     shaped_final, shaped, _ = rollout(env, 150)(bank.tasks, jnp.asarray([0.02, 0.1]))
     np.testing.assert_array_equal(shaped.joints, states.joints)  # shaping changes rewards only
-    start = jax.vmap(lambda task: env.reset(None, task))(bank.tasks)
+    start = jax.jit(jax.vmap(lambda task: env.reset(None, task)))(bank.tasks)
     errors = np.concatenate([_pose_errors(start)[None], _pose_errors(states)])[..., 0]  # [T + 1, B]
     running = np.arange(150)[:, None] < np.asarray(final.step)[None]
     extra = np.asarray(shaped.reward - states.reward)[..., 0]
@@ -91,7 +91,7 @@ def test_dynamic_targets_move_at_task_speed_and_can_be_tracked(generated):
     final, states, _ = rollout(env, 300)(bank.tasks, jnp.asarray([0.02, 0.1]))
     arm, tasks = load_arm(), bank.tasks
     start = forward_kinematics(arm, tasks.base_pos, tasks.base_quat, tasks.dynamic_start_joints).ee_pos
-    reset = jax.vmap(lambda task: env.reset(None, task))(tasks)
+    reset = jax.jit(jax.vmap(lambda task: env.reset(None, task)))(tasks)
     np.testing.assert_allclose(reset.arms.target_pos, start, atol=1e-5)
     running = ~np.asarray(states.done[4])  # episodes still going after 5 steps
     moved = np.linalg.norm(np.asarray(states.arms.target_pos[4] - start), axis=-1)[running, 0]
@@ -158,7 +158,7 @@ def test_hindsight_targets_equal_an_episode_run_with_those_targets(generated, sh
     goal = jax.tree.map(lambda x: x[goal_step], states)
     retargeted = tasks.replace(target_pos=np.asarray(goal.arms.ee_pos, np.float64), target_quat=np.asarray(goal.arms.ee_quat, np.float64))
     _, truth, _ = run(TaskBank.from_tasks(retargeted, 3).tasks, tolerance)
-    start = jax.vmap(lambda task: env.reset(None, task, tolerance))(TaskBank.from_tasks(tasks, 3).tasks)
+    start = jax.jit(jax.vmap(lambda task: env.reset(None, task, tolerance)))(TaskBank.from_tasks(tasks, 3).tasks)
     before = jax.tree.map(lambda first, rest: jnp.concatenate([first[None], rest[:-1]]), start, states)
     relabelled = jax.jit(jax.vmap(jax.vmap(env.with_achieved_targets), in_axes=(0, 0, None)))(before, states, goal)
     def running(done):  # [T, B]: the episode had not ended before this step (afterwards it is frozen)
@@ -204,7 +204,7 @@ def test_observation_self_last_and_radius(generated):
     bank = TaskBank.from_tasks(tasks, 10)
     for radius in (1.7, 0.85, 0.0):
         env = ReachingEnv(10, EnvConfig(neighbour_radius=radius))
-        state = jax.vmap(lambda task: env.reset(None, task))(bank.tasks)
+        state = jax.jit(jax.vmap(lambda task: env.reset(None, task)))(bank.tasks)
         mask, obs, active = np.asarray(state.obs_mask), np.asarray(state.obs), np.asarray(bank.tasks.active)
         base = np.asarray(bank.tasks.base_pos)
         dist = np.linalg.norm(base[:, :, None] - base[:, None], axis=-1)
@@ -300,7 +300,7 @@ def test_thin_obstacle_is_not_tunnelled_through_in_one_step():
     deep = rows[np.asarray(dense.min(0)) <= -0.005]
     assert len(deep) >= 3  # the search finds pass-through steps
     tasks = make_tasks(bases[deep], q0[deep].astype(np.float64), q0[deep].astype(np.float64))
-    state = jax.vmap(lambda task: env.reset(None, task))(TaskBank.from_tasks(tasks, 2).tasks)
+    state = jax.jit(jax.vmap(lambda task: env.reset(None, task)))(TaskBank.from_tasks(tasks, 2).tasks)
     stepped = jax.jit(jax.vmap(env.step))(state, env.joint_deltas_to_actions(q1[deep] - q0[deep]))
     assert np.asarray(stepped.collided).any(-1).all()
     assert np.asarray(stepped.done).all() and not np.asarray(stepped.success).any()

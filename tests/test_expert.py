@@ -61,7 +61,7 @@ def test_expert_steps_replay_in_the_environment(small_tasks, solved):
         end = small_tasks.start_joints[i, :arms] + r.deltas.astype(np.float64).sum(0)
         np.testing.assert_allclose(end, small_tasks.goal_joints[i, :arms], atol=1e-4)
     bank = TaskBank.from_tasks(small_tasks, 2)
-    start = jax.vmap(lambda task: env.reset(None, task))(bank.tasks)
+    start = jax.jit(jax.vmap(lambda task: env.reset(None, task)))(bank.tasks)
     replay = jax.jit(jax.vmap(lambda s, a, n: replay_actions(env, s, a, n)))
     states, _ = replay(start, jnp.asarray(env.joint_deltas_to_actions(actions)), jnp.asarray([len(r.deltas) for r in solved]))
     assert np.asarray(states.success.any(axis=1)).all()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -160,9 +161,11 @@ def test_clearance_features_are_each_own_geoms_exact_distance_to_each_observed_a
     world = build_scene(2)
     frames = {t: forward_kinematics(world.arm, pos, quat, q) for t, q in (("now", joints), ("before", previous))}
 
+    reference = jax.jit(lambda *geoms: geom_clearances(world, *geoms))  # one compilation, not one per eager op
+
     def clearance(t, i, j):
         f = frames[t]
-        return np.minimum(np.asarray(geom_clearances(world, f.capsules[i], f.boxes[i], f.capsules[j], f.boxes[j])), CLEARANCE_CAP)
+        return np.minimum(np.asarray(reference(f.capsules[i], f.boxes[i], f.capsules[j], f.boxes[j])), CLEARANCE_CAP)
 
     near = 0
     for i in range(5):

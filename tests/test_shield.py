@@ -56,7 +56,7 @@ def test_shielded_steps_never_collide_and_free_steps_pass_unchanged(crowded):
     start, active = np.asarray(t.start_joints), np.asarray(t.active)
     np.testing.assert_array_equal(executed[~asked], proposed[~asked])  # free team steps are left alone
     assert (motion[~asked][active[~asked]] == PROPOSED).all()
-    away = np.asarray(jax.vmap(functools.partial(away_joints, env.scene, **limits))(t.base_pos, t.base_quat, t.start_joints,
+    away = np.asarray(jax.jit(jax.vmap(functools.partial(away_joints, env.scene, **limits)))(t.base_pos, t.base_quat, t.start_joints,
                                                                                     t.active))
     for level, expected in ((PROPOSED, proposed), (AWAY, away), (HELD, start)):
         np.testing.assert_allclose(executed[motion == level], expected[motion == level], atol=1e-6)

@@ -301,10 +301,10 @@ def test_shield_teacher_replaces_colliding_motions_in_its_share_of_the_environme
                          expert=False, curriculum=False, shield_teacher=0.5)
     trainer = Trainer(env, bank, None, config)
     t = bank.tasks.replace(start_joints=bank.tasks.start_joints + 0.5 * (bank.tasks.goal_joints - bank.tasks.start_joints))
-    states = jax.vmap(lambda task: env.reset(None, task))(t)
+    states = jax.jit(jax.vmap(lambda task: env.reset(None, task)))(t)
     drive = env.joint_deltas_to_actions(t.goal_joints - states.joints)  # full speed to the goal: some teams collide
     actions, replaced = (np.asarray(x) for x in jax.jit(trainer._shielded)(states, drive))
-    executed, motion, _ = jax.vmap(env.shield)(t.base_pos, t.base_quat, states.joints,
+    executed, motion, _ = jax.jit(jax.vmap(env.shield))(t.base_pos, t.base_quat, states.joints,
                                                env.next_joints(states.joints, drive, t.active), t.active)
     teacher, active = slice(0, 24), np.asarray(t.active)
     expected = (np.asarray(motion) != PROPOSED) & active
