@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -283,16 +284,20 @@ def test_straight_motion_free_matches_the_xla_kernel_along_the_motion(generated)
     start, goal = np.asarray(generated.start_joints, np.float64), np.asarray(generated.goal_joints, np.float64)
     active = np.asarray(generated.active)
     steps = np.maximum(1, np.ceil(np.max(np.abs(goal - start) * active[..., None], axis=(1, 2)) / PlannerConfig.resolution - 1e-9))
-    fractions = np.minimum(np.arange(1, steps.max() + 1)[None] / steps[:, None], 1.0)  # [N, S], padded with the goal
-    joints = start[:, None] + fractions[..., None, None] * (goal - start)[:, None]
+    task = np.repeat(np.arange(len(steps)), steps.astype(int))  # every checked configuration of every task, once
+    fraction = np.concatenate([np.arange(1, n + 1) / n for n in steps])
+    joints = start[task] + fraction[:, None, None] * (goal - start)[task]
     scene = build_scene(generated.max_arms)
-    def repeat(x):
-        return jnp.repeat(jnp.asarray(x), fractions.shape[1], axis=0)
 
-    frames = forward_kinematics(scene.arm, repeat(generated.base_pos.astype(np.float32)), repeat(generated.base_quat.astype(np.float32)),
-                                jnp.asarray(joints.reshape(-1, *joints.shape[2:]), jnp.float32))
-    distance = np.asarray(frame_contacts(scene, frames, repeat(active), kernel="xla").min_distance)
-    distance = np.where(active, distance.reshape(len(steps), -1, generated.max_arms).min(axis=1), np.inf).min(axis=1)
+    @jax.jit
+    def min_distance(base_pos, base_quat, joints, active):
+        frames = forward_kinematics(scene.arm, base_pos, base_quat, joints)
+        return frame_contacts(scene, frames, active, kernel="xla").min_distance
+
+    per_step = np.asarray(min_distance(generated.base_pos[task].astype(np.float32), generated.base_quat[task].astype(np.float32),
+                                       joints.astype(np.float32), active[task]))
+    distance = np.full(len(steps), np.inf)
+    np.minimum.at(distance, task, np.where(active[task], per_step, np.inf).min(axis=1))
     clear = np.abs(distance) > 1e-4
     assert clear.mean() > 0.9
     np.testing.assert_array_equal(free[clear], distance[clear] > 0)

@@ -194,16 +194,22 @@ def grasp_table(scene: PickPlaceScene) -> dict:
                 for key, value in (("arm", [arm] * n), ("obj", [obj] * n), ("cand", [k] * n), ("grasp", range(n)),
                                    ("spawn", [spawn] * n), ("pos", pos), ("quat", quat)):
                     rows[key].append(np.asarray(value))
-    r = {k: np.concatenate(v) for k, v in rows.items()}
+    # Only grasps whose open fingers clear the floor are solved, and only solved grasps' pregrasps
+    # (every condition is required, so the others could not win).
+    r = {k: np.concatenate(v)[_finger_bottom(np.concatenate(rows["pos"]), np.concatenate(rows["quat"])) > 0.005]
+         for k, v in rows.items()}
     approach = np.asarray(quat_to_mat(jnp.asarray(r["quat"])))[:, :, 0]  # ee_link x in the world
     pregrasp_pos = r["pos"] - PREGRASP_BACKOFF * approach
     typical = typical_joints(r["arm"], pregrasp_pos)
     home = np.broadcast_to(load_arm().home, typical.shape)
     flips = [typical + [0, 0, 0, 0, 0, turn] for turn in (np.pi / 2, -np.pi / 2)]
-    q_grasp, ok_grasp = _ik(r["arm"], r["pos"], r["quat"], np.stack([typical, home, *flips], axis=1))
-    q_pre, ok_pre = _ik(r["arm"], pregrasp_pos, r["quat"], q_grasp[:, None])
-    ok = (ok_grasp & ok_pre & _clear(r["arm"], q_grasp) & _clear(r["arm"], q_pre)
-          & (_finger_bottom(r["pos"], r["quat"]) > 0.005))
+    q_grasp, ok = _ik(r["arm"], r["pos"], r["quat"], np.stack([typical, home, *flips], axis=1))
+    solved = np.flatnonzero(ok)
+    q_pre = np.zeros_like(q_grasp)
+    if solved.size:
+        q_pre[solved], ok[solved] = _ik(r["arm"][solved], pregrasp_pos[solved], r["quat"][solved],
+                                        q_grasp[solved, None])
+    ok &= _clear(r["arm"], q_grasp) & _clear(r["arm"], q_pre)
     score = np.where(ok, -np.abs(q_pre - typical).sum(-1) - 1e-3 * r["cand"], -np.inf)
     table = {k: np.zeros((NUM_ARMS, nobj, *shape)) for k, shape in
              (("spawn", (7,)), ("reach_joints", (6,)), ("pregrasp_joints", (6,)), ("grasp_joints", (6,)))}
@@ -211,9 +217,9 @@ def grasp_table(scene: PickPlaceScene) -> dict:
     for arm in range(NUM_ARMS):
         for obj in range(nobj):
             mine = np.flatnonzero((r["arm"] == arm) & (r["obj"] == obj))
-            best = mine[np.argmax(score[mine])]
-            if not np.isfinite(score[best]):
+            if not np.isfinite(score[mine].max(initial=-np.inf)):
                 raise RuntimeError(f"no feasible grasp for arm {arm}, object {scene.object_names[obj]}")
+            best = mine[np.argmax(score[mine])]
             table["grasp_index"][arm, obj] = r["grasp"][best]
             for key, value in (("spawn", r["spawn"]), ("reach_joints", typical), ("pregrasp_joints", q_pre),
                                ("grasp_joints", q_grasp)):
