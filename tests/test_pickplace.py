@@ -91,6 +91,7 @@ def test_pose_ik_reaches_reachable_poses():
     assert float(jnp.max(position_error)) < 1e-3 and float(jnp.max(angle_error)) < 1e-2
 
 
+@pytest.mark.slow
 def test_scripted_grasp_lifts_and_holds_every_object(scene):
     """Each arm at its grasp configuration closes the gripper, welds its object and lifts it
     0.3 m under MuJoCo physics; the object follows and stays where it was held."""
@@ -201,6 +202,7 @@ def test_initial_configurations_touch_nothing_and_low_arms_rise(scene):
         plans.plan_runs(scene, 0, 1, start_height=-0.1)
 
 
+@pytest.mark.slow
 def test_a_full_run_on_mujoco_puts_every_object_in_the_bin(scene):
     run = jax.tree.map(lambda x: x[1:2], plans.plan_runs(scene, 1000, 2))  # run 1 of seed 1000
     [result] = backends.run_mujoco(scene, Planner.load().batched(4), run, max_control_steps=600)

@@ -100,15 +100,16 @@ def test_hindsight_goals_come_from_the_same_episode(one_arm):
     state, _ = trainer.iteration(trainer.init(jax.random.key(0)))
     assert int(state.buffer.inserted) == 4 * 8 * 4  # 32 policy transitions, 3 relabelled copies each
 
-    autoreset, envs = trainer.autoreset, trainer.autoreset.reset(jax.random.key(1), 4)
+    envs, step = trainer.autoreset.reset(jax.random.key(1), 4), jax.jit(trainer.autoreset.step)
     steps = []
     for t in range(8):
         actions = jax.random.uniform(jax.random.key(t), (4, 1, 6), minval=-1, maxval=1)
-        after_reset, stepped = autoreset.step(envs, actions)
+        after_reset, stepped = step(envs, actions)
         steps.append((envs.env, actions, stepped))
         envs = after_reset
     before, actions, stepped = jax.tree.map(lambda *x: jnp.stack(x), *steps)
-    transitions, valid = hindsight_transitions(trainer.env, before, actions, stepped, 5, jax.random.key(2))
+    relabel = jax.jit(lambda *args: hindsight_transitions(trainer.env, *args, 5, jax.random.key(2)))
+    transitions, valid = relabel(before, actions, stepped)
     assert np.asarray(valid).all() and np.asarray(stepped.done).any()  # episodes of 4 steps end inside the rollout
     reached = np.asarray(stepped.obs)[..., 0, -1, EE_POSE]  # [T, B, 7]: each step's end-effector pose
     goals = np.asarray(transitions.next_obs)[:, -1, TARGET_POSE].reshape(5, 8, 4, 7)
@@ -158,6 +159,7 @@ def test_queue_is_a_bounded_fifo_of_pytrees():
     assert valid.tolist() == [True, False] and int(rows[0]) == 2 and np.all(joints[0] == 1)
 
 
+@pytest.mark.slow
 def test_collision_states_are_queued_and_relabelled_with_plans(generated):
     """Every step where a team collides queues its joints before the step; the relabeller plans
     BiRRT from a queued state to the goal configuration, and the next iteration replays the
