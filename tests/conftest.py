@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import time
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +20,7 @@ from mjx_multiarm.geometry.evaluate import base_pose_arrays
 from mjx_multiarm.geometry.ik import solve_positions
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.tasks.dataset import load_tasks, save_tasks
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_chunk
 from mjx_multiarm.tasks.types import Tasks
 
@@ -90,9 +92,25 @@ def random_padded_scenes(rng: np.random.Generator, count: int, max_arms: int, sp
 
 
 @pytest.fixture(scope="session")
-def generated():
-    """256 dynamic-capable tasks of 1-10 arms in 10 slots (one chunk, seed 7)."""
-    return generate_chunk(GenerationSpec(count=256, arm_counts=tuple(range(1, 11)), mode="dynamic", seed=7), 0)
+def generated(tmp_path_factory, worker_id):
+    """256 dynamic-capable tasks of 1-10 arms in 10 slots (one chunk, seed 7), generated once
+    per test run: the first xdist worker to claim them writes them to the run's temporary
+    root (atomically), and the others read that file instead of generating them again."""
+    spec = GenerationSpec(count=256, arm_counts=tuple(range(1, 11)), mode="dynamic", seed=7)
+    if worker_id == "master":  # no xdist workers
+        return generate_chunk(spec, 0)
+    shared = tmp_path_factory.getbasetemp().parent / "generated.npz"
+    try:
+        os.close(os.open(shared.with_suffix(".claimed"), os.O_CREAT | os.O_EXCL))
+    except FileExistsError:  # another worker generates them
+        for _ in range(3000):
+            if shared.exists():
+                return load_tasks(shared)[0]
+            time.sleep(0.2)
+        raise TimeoutError(f"{shared}: the worker that claimed the generated tasks wrote none in 10 minutes")
+    tasks = generate_chunk(spec, 0)
+    save_tasks(shared, tasks)
+    return tasks
 
 
 def make_tasks(bases, start, goal) -> Tasks:

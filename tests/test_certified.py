@@ -130,7 +130,8 @@ def _pickplace_steps(n: int, seed: int):
     return env, pos, quat, q0, q1, active
 
 
-@pytest.mark.parametrize("steps", ["random two-arm", "crowded teams", pytest.param("pick-and-place cell", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("steps", ["random two-arm", pytest.param("crowded teams", marks=pytest.mark.slow),
+                                   pytest.param("pick-and-place cell", marks=pytest.mark.slow)])
 def test_nothing_certified_free_touches_in_a_dense_recheck(steps, crowded_steps):
     """Team by team: a step certified free has no contact at 256 configurations along it; every
     step the dense or the sampled check finds in contact is flagged; and the check is not

@@ -256,6 +256,7 @@ def test_restoring_colliding_arms_keeps_the_episode_going():
     assert float(contacts(jnp.asarray(joints, jnp.float32)).min()) >= 0
 
 
+@pytest.mark.slow
 def test_collisions_end_once_the_tolerance_reaches_the_threshold():
     """collisions_end_at: restored collisions become the paper's rule (the episode ends at the
     first colliding step, arms not put back) for episodes whose position tolerance is at most
@@ -353,6 +354,7 @@ def test_auto_reset_walks_the_bank_and_counts_episodes(generated):
     assert set(np.asarray(uniform.env.task.task_id).tolist()) == set(range(5))
 
 
+@pytest.mark.slow
 def test_episodes_of_stalled_teams_end_early_as_timeouts(generated):
     """``make_episodes(stall_steps=K)``: a team that stops getting closer to its targets ends
     after K steps, as a timeout; one that keeps closing in (IK) ends as without it."""

@@ -175,6 +175,7 @@ def test_arms_collide_with_each_other_in_the_physics_not_with_themselves(scene):
     assert flags[0, protocol.TOUCH_ARM] and flags[1, protocol.TOUCH_ARM]
 
 
+@pytest.mark.xdist_group("grasp_table")  # one worker computes the grasp table for all of them
 def test_initial_configurations_touch_nothing_and_low_arms_rise(scene):
     """Initial configurations are free in the whole scene (grippers against the bin, floor
     and objects, as the original checks them), and ``rise`` lifts every arm that starts
@@ -267,6 +268,7 @@ def test_the_collision_model_flags_every_physics_contact_of_the_arms(scene):
     assert (touched & ~verdict["reaching"]).any()
 
 
+@pytest.mark.xdist_group("grasp_table")  # one worker computes the grasp table for all of them
 def test_timeouts_and_collisions_end_runs(scene):
     """A step limit too short to finish ends the run as a timeout; run 0 of seed 1000 starts
     with arm 1's gripper beside its object and ends in an arm-object collision while reaching
@@ -278,6 +280,7 @@ def test_timeouts_and_collisions_end_runs(scene):
     assert results[1].cause == "timeout" and results[1].control_steps == 20
 
 
+@pytest.mark.xdist_group("grasp_table")  # one worker computes the grasp table for all of them
 def test_mjx_runs_in_batches_of_at_most_four_on_cpu(scene, monkeypatch):
     """On the CPU backend MJX batches of 8 runs hang in XLA's runtime (jaxlib 0.10.2), so
     ``run_mjx`` splits the runs into batches of 4, padding the last with its last run."""

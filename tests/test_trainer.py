@@ -289,6 +289,7 @@ def test_prefill_replays_distinct_experts_into_the_expert_buffer(one_arm):
         trainer.prefill(trainer.init(jax.random.key(0)), 5)
 
 
+@pytest.mark.slow
 def test_shield_teacher_replaces_colliding_motions_in_its_share_of_the_environments(generated):
     """shield_teacher=0.5: in the first half of the environments, every arm whose motion the
     shield replaced executes the replacement (as an action) and is flagged; the other half
