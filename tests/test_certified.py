@@ -138,7 +138,7 @@ def test_nothing_certified_free_touches_in_a_dense_recheck(steps, crowded_steps)
     much more cautious than the dense one. The pick-and-place cell's collision model has a
     second gripper box and the bin's boxes as obstacles."""
     if steps == "random two-arm":
-        env, pos, quat, q0, q1, active = _random_two_arm_steps(2048, 1)
+        env, pos, quat, q0, q1, active = _random_two_arm_steps(512, 1)
     else:
         env, pos, quat, q0, q1, active = crowded_steps if steps == "crowded teams" else _pickplace_steps(512, 2)
     start_free = ~np.asarray(scene_contacts(env.scene, pos, quat, q0, active).collided.any(-1))

@@ -49,26 +49,31 @@ def _trainer(tasks, store, tolerance, expert=True, **overrides):
     return Trainer(env, bank, Demonstrations.from_store(store, bank, env, 48), config)
 
 
-def test_expert_experience_enters_only_for_failed_episodes(one_arm):
+@pytest.fixture(scope="module")
+def sharing(one_arm):
+    """The trainer whose compiled iteration the expert and hindsight tests share: experts in
+    their own buffer (expert_share 0.25), 3 hindsight copies of every transition, 8-step
+    rollouts of 4-step episodes, and a tolerance so tight that every episode fails."""
     tasks, store = one_arm
+    return _trainer(tasks, store, (1e-4, 1e-4), expert_share=0.25, expert_buffer=512, hindsight=3, rollout_steps=8)
+
+
+@pytest.mark.xdist_group("trainer")  # one worker compiles the shared trainer for all of them
+def test_expert_experience_enters_only_for_failed_episodes(sharing):
     # Tight tolerance, 4-step episodes: every episode fails by timeout and queues its expert.
-    failing = _trainer(tasks, store, (1e-4, 1e-4))
-    state = failing.init(jax.random.key(0))
-    state, metrics = failing.iteration(state)
-    assert int(metrics["ended"]) == 4 and int(metrics["successes"]) == 0
+    state, metrics = sharing.iteration(sharing.init(jax.random.key(0)))
+    assert int(metrics["ended"]) == 8 and int(metrics["successes"]) == 0
     assert int(state.expert_steps) > 0  # two queued failures were replayed
-    assert int(state.buffer.inserted) == 16 + int(state.expert_steps)  # 4 envs x 4 steps + expert steps
-    assert int(state.failed.count) == 2  # the other two wait for the next iteration
+    assert int(state.buffer.inserted) == 4 * 8 * 4  # 4 envs x 8 steps x (1 + 3 hindsight); experts in their own buffer
+    assert int(state.expert_buffer.inserted) == int(state.expert_steps)
+    assert int(state.failed.count) == 6  # the other six wait for the next iterations
     assert np.isfinite(float(metrics["critic_loss"]))  # past warm-up: updates ran
-    # Loose tolerance: every episode succeeds at its first step, nothing is queued or replayed.
-    succeeding = _trainer(tasks, store, (10.0, 4.0))
-    state = succeeding.init(jax.random.key(0))
-    state, metrics = succeeding.iteration(state)
-    assert int(metrics["successes"]) == int(metrics["ended"]) == 16
-    assert int(state.expert_steps) == 0 and int(state.failed.count) == 0
-    # Without experts, failures are not queued.
-    plain = _trainer(tasks, store, (1e-4, 1e-4), expert=False)
-    state, _ = plain.iteration(plain.init(jax.random.key(0)))
+    # The same environments reset at a loose tolerance: every episode succeeds at its first
+    # step, nothing is queued or replayed (the same compiled iteration: the tolerance is state).
+    state = sharing.init(jax.random.key(0))
+    state = state.replace(envs=jax.jit(sharing.autoreset.reset, static_argnums=1)(jax.random.key(1), 4, jnp.asarray([10.0, 4.0])))
+    state, metrics = sharing.iteration(state)
+    assert int(metrics["successes"]) == int(metrics["ended"]) == 32
     assert int(state.expert_steps) == 0 and int(state.failed.count) == 0
 
 
@@ -92,13 +97,11 @@ def test_noise_schedule_narrows_exploration_at_tight_levels(one_arm):
     assert scheduled.mean() < 0.5 * fixed.mean()
 
 
-def test_hindsight_goals_come_from_the_same_episode(one_arm):
+@pytest.mark.xdist_group("trainer")
+def test_hindsight_goals_come_from_the_same_episode(sharing):
     """Every relabelled transition's goal is the pose its arm reached at that step or a later
-    one of the same episode within the rollout; relabelled copies enter the buffer."""
-    tasks, store = one_arm
-    trainer = _trainer(tasks, store, (0.05, 0.5), expert=False, hindsight=3, rollout_steps=8)
-    state, _ = trainer.iteration(trainer.init(jax.random.key(0)))
-    assert int(state.buffer.inserted) == 4 * 8 * 4  # 32 policy transitions, 3 relabelled copies each
+    one of the same episode within the rollout (the iteration's relabelled copies: the test above)."""
+    trainer = sharing
 
     envs, step = trainer.autoreset.reset(jax.random.key(1), 4), jax.jit(trainer.autoreset.step)
     steps = []
@@ -236,13 +239,14 @@ def test_data_parallel_over_two_host_devices(tmp_path):
     assert "sharded ok 24" in result.stdout
 
 
-def test_expert_share_keeps_demonstrations_in_their_own_buffer(one_arm):
+@pytest.mark.xdist_group("trainer")
+def test_expert_share_keeps_demonstrations_in_their_own_buffer(one_arm, sharing):
     """expert_share = 0.25: expert replays fill the expert buffer (not the main one) and every
     batch holds exactly a quarter of expert transitions, however many policy rows arrive."""
     tasks, store = one_arm
-    trainer = _trainer(tasks, store, (1e-4, 1e-4), expert_share=0.25, expert_buffer=512)
+    trainer = sharing
     state, _ = trainer.iteration(trainer.init(jax.random.key(0)))
-    assert int(state.buffer.inserted) == 16 and not np.asarray(state.buffer.data.expert[:16]).any()
+    assert int(state.buffer.inserted) == 128 and not np.asarray(state.buffer.data.expert[:128]).any()
     assert int(state.expert_buffer.inserted) == int(state.expert_steps) > 0
     batch = trainer._sample(state, jax.random.key(3), state.agent.updates)
     assert int(np.asarray(batch.expert).sum()) == 4  # round(0.25 x 16)
@@ -274,13 +278,13 @@ def test_curriculum_by_team_resets_each_team_size_at_its_own_level(generated):
     assert int(trainer.level(curriculum)) == 2
 
 
-def test_prefill_replays_distinct_experts_into_the_expert_buffer(one_arm):
+@pytest.mark.xdist_group("trainer")
+def test_prefill_replays_distinct_experts_into_the_expert_buffer(one_arm, sharing):
     """prefill(3) replays the experts of 3 different tasks: their steps (one arm each) enter
     the expert buffer of expert_share (the main buffer without it); more than the bank's
     experts fail clearly."""
     tasks, store = one_arm
-    for share, buffer in ((0.25, "expert_buffer"), (0.0, "buffer")):
-        trainer = _trainer(tasks, store, (1e-4, 1e-4), expert_share=share, expert_buffer=512)
+    for trainer, buffer in ((sharing, "expert_buffer"), (_trainer(tasks, store, (1e-4, 1e-4)), "buffer")):
         state = trainer.prefill(trainer.init(jax.random.key(0)), 3, seed=1, chunk=2)
         filled = getattr(state, buffer)
         assert int(filled.inserted) == int(state.expert_steps) and np.asarray(filled.data.expert[: int(filled.size)]).all()
