@@ -20,6 +20,11 @@ from train.agent import (
 from train.replay import ReplayBuffer, Transitions
 
 
+#: The update every test jits: one compilation per config (static) and batch shape, so the
+#: tests that use the default config and 64-row batches share theirs.
+update = jax.jit(sac_update, static_argnums=3)
+
+
 def _batch(key, n, length=3):
     keys = jax.random.split(key, 4)
     obs = jax.random.normal(keys[0], (n, length, 107))
@@ -51,7 +56,7 @@ def test_one_sac_update_lowers_the_critic_loss_on_a_fixed_batch():
     key = jax.random.key(2)
     target = td_target(agent, batch, jax.random.split(key)[0])
     before = critic_loss(agent, agent.critic, batch, target)[0]
-    updated, metrics = jax.jit(sac_update)(agent, batch, key)
+    updated, metrics = update(agent, batch, key, SACConfig())
     after = critic_loss(updated, updated.critic, batch, target)[0]
     assert float(after) < float(before)
     np.testing.assert_allclose(metrics["critic_loss"], before, rtol=1e-5)
@@ -78,9 +83,9 @@ def test_actor_update_reusing_the_critic_encodings_equals_the_full_actor_loss():
     import optax
 
     agent = create_agent(jax.random.key(0))
-    batch = _batch(jax.random.key(1), 64, length=4)
+    batch = _batch(jax.random.key(1), 64)
     key = jax.random.key(2)
-    updated, metrics = jax.jit(sac_update)(agent, batch, key)
+    updated, metrics = update(agent, batch, key, SACConfig())
     actor_key = jax.random.split(key)[1]
 
     def textbook(params):
@@ -108,24 +113,24 @@ def test_behaviour_cloned_start_then_sac():
         error = jnp.sum((mean - batch.action) ** 2, axis=-1)
         return jnp.sum(jnp.where(batch.expert, error, 0.0)) / batch.expert.sum()
 
-    first, metrics = jax.jit(sac_update, static_argnums=3)(agent, batch, jax.random.key(2), config)
+    first, metrics = update(agent, batch, jax.random.key(2), config)
     loss, grads = jax.value_and_grad(cloning)(agent.actor)
     np.testing.assert_allclose(metrics["actor_loss"], loss, rtol=1e-6)
     step, _ = optax.adam(config.actor_lr).update(grads, agent.actor_opt, agent.actor)
     _assert_same_step(agent.actor, first.actor, step)
-    plain, _ = jax.jit(sac_update)(agent, batch, jax.random.key(2))
+    plain, _ = update(agent, batch, jax.random.key(2), SACConfig())
     for got, want in zip(jax.tree.leaves(first.critic), jax.tree.leaves(plain.critic)):
         np.testing.assert_allclose(got, want, atol=1e-6)  # the critics' step is SAC's
-    _, later = jax.jit(sac_update, static_argnums=3)(first, batch, jax.random.key(3), config)
-    _, reference = jax.jit(sac_update)(first, batch, jax.random.key(3))
+    _, later = update(first, batch, jax.random.key(3), config)
+    _, reference = update(first, batch, jax.random.key(3), SACConfig())
     np.testing.assert_allclose(later["actor_loss"], reference["actor_loss"], rtol=1e-6)
 
 
 def test_learned_temperature_and_behaviour_cloning():
     config = SACConfig(squash=True, learn_alpha=True)
     agent = create_agent(jax.random.key(0), config)
-    batch = _batch(jax.random.key(1), 32)
-    updated, _ = sac_update(agent, batch, jax.random.key(2), config)
+    batch = _batch(jax.random.key(1), 64)
+    updated, _ = update(agent, batch, jax.random.key(2), config)
     assert float(updated.log_alpha) != float(agent.log_alpha)
     bc = jax.jit(bc_update)
     first, metrics = bc(agent, batch)
@@ -155,9 +160,8 @@ def test_expert_bc_pulls_the_mean_action_toward_the_expert_actions():
 
     def expert_error(config):
         agent = create_agent(jax.random.key(0), config)
-        update = jax.jit(lambda a, k: sac_update(a, batch, k, config))
         for key in jax.random.split(jax.random.key(2), 30):
-            agent, metrics = update(agent, key)
+            agent, metrics = update(agent, batch, key, config)
         mean = agent.policy()(batch.obs, batch.mask)[0]
         return float(jnp.mean(jnp.sum((mean - batch.action) ** 2, -1)[batch.expert])), metrics
 
@@ -168,14 +172,15 @@ def test_expert_bc_pulls_the_mean_action_toward_the_expert_actions():
     assert cloned < 0.7 * pure
 
 
-@pytest.mark.parametrize("update", ["sac", "bc"])
-def test_deployed_actor_is_a_polyak_average_of_the_actor(update):
+@pytest.mark.parametrize("kind", ["sac", "bc"])
+def test_deployed_actor_is_a_polyak_average_of_the_actor(kind):
     """With policy_average = r the deployed parameters follow a_k = a_k-1 + r (actor_k - a_k-1);
     with 0 they are the latest actor."""
-    batch = _batch(jax.random.key(1), 32)
+    batch = _batch(jax.random.key(1), 64)
     for rate in (0.0, 0.3):
         config = SACConfig(policy_average=rate)
-        step = jax.jit(lambda a, k: sac_update(a, batch, k, config) if update == "sac" else bc_update(a, batch, config))
+        cloning = jax.jit(lambda a: bc_update(a, batch, config))
+        step = (lambda a, k: update(a, batch, k, config)) if kind == "sac" else (lambda a, k: cloning(a))
         agent = create_agent(jax.random.key(0), config)
         expected = agent.actor
         for key in jax.random.split(jax.random.key(2), 3):
