@@ -132,7 +132,7 @@ def _pickplace_steps(n: int, seed: int):
 
 @pytest.mark.parametrize("steps", ["random two-arm", pytest.param("crowded teams", marks=pytest.mark.slow),
                                    pytest.param("pick-and-place cell", marks=pytest.mark.slow)])
-def test_nothing_certified_free_touches_in_a_dense_recheck(steps, crowded_steps):
+def test_nothing_certified_free_touches_in_a_dense_recheck(steps, request):
     """Team by team: a step certified free has no contact at 256 configurations along it; every
     step the dense or the sampled check finds in contact is flagged; and the check is not
     much more cautious than the dense one. The pick-and-place cell's collision model has a
@@ -140,7 +140,7 @@ def test_nothing_certified_free_touches_in_a_dense_recheck(steps, crowded_steps)
     if steps == "random two-arm":
         env, pos, quat, q0, q1, active = _random_two_arm_steps(512, 1)
     else:
-        env, pos, quat, q0, q1, active = crowded_steps if steps == "crowded teams" else _pickplace_steps(512, 2)
+        env, pos, quat, q0, q1, active = request.getfixturevalue("crowded_steps") if steps == "crowded teams" else _pickplace_steps(512, 2)
     start_free = ~np.asarray(scene_contacts(env.scene, pos, quat, q0, active).collided.any(-1))
     check = jax.jit(lambda *a: certified_contacts(env.scene, *a))
     verdict = check(pos, quat, q0, q1, active)

@@ -24,14 +24,14 @@ from mjx_multiarm.tasks.types import take
 
 @pytest.fixture(scope="module")
 def crowded(generated):
-    """Free configurations of the generated 2-6-arm teams in 6 slots, and proposals
-    that drive every arm at full speed toward its goal (many of them collide)."""
-    tasks = take(generated, (generated.num_arms >= 2) & (generated.num_arms <= 6))
-    env = ReachingEnv(6)
-    t = TaskBank.from_tasks(tasks, 6).tasks
-    # Every team at its start and halfway along its straight joint path to its goal, where free.
-    t = jax.tree.map(lambda x: jnp.concatenate([x] * 2), t)
-    fraction = jnp.repeat(jnp.arange(2) / 2, tasks.num_tasks)[:, None, None]
+    """Free configurations of the generated 2-4-arm teams in 4 slots, and proposals
+    that drive every arm at full speed toward its goal (some of them collide)."""
+    tasks = take(generated, (generated.num_arms >= 2) & (generated.num_arms <= 4))
+    env = ReachingEnv(4)
+    t = TaskBank.from_tasks(tasks, 4).tasks
+    # Every team at its start and 1/4, 1/2 and 3/4 along its straight joint path to its goal, where free.
+    t = jax.tree.map(lambda x: jnp.concatenate([x] * 4), t)
+    fraction = jnp.repeat(jnp.arange(4) / 4, tasks.num_tasks)[:, None, None]
     t = t.replace(start_joints=t.start_joints + fraction * (t.goal_joints - t.start_joints))
     free = ~np.asarray(scene_contacts(env.scene, t.base_pos, t.base_quat, t.start_joints, t.active).collided.any(-1))
     t = jax.tree.map(lambda x: x[free], t)
