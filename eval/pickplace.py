@@ -1,7 +1,8 @@
 """The paper's application: four UR5 arms pick objects off the floor into a central bin.
 
     python -m eval.pickplace --runs 500 --seed 1000 --out results/pickplace --json
-    python -m eval.pickplace --runs 64 --backend mjx --batch 64      # MJX: jitted batches (CPU: of 4)
+    python -m eval.pickplace --runs 64 --backend mjx-warp --batch 64 # MJX on MuJoCo Warp: jitted batches, CPU or GPU
+    python -m eval.pickplace --runs 64 --backend mjx --batch 64      # MJX on XLA: jitted batches (CPU: of 4)
     python -m eval.pickplace --runs 20 --render 2                    # PNG frames (+ MP4) of 2 runs
     python -m eval.pickplace --runs 500 --seed 1000 --safe           # the policy's team steps shielded
     python -m eval.pickplace --runs 500 --approach-height 0 --start-height 0   # the original protocol
@@ -10,7 +11,8 @@
 Every arm runs the protocol of :mod:`mjx_multiarm.pickplace.protocol` with the shared
 reaching policy (default: the shipped one) under MuJoCo physics: MuJoCo C (default; runs in
 lockstep batches spread over ``--workers`` processes) or MJX (``--batch`` runs per jitted
-call; at most 4 on the CPU backend, see :data:`~mjx_multiarm.pickplace.backends.MJX_CPU_BATCH`).
+call) on MuJoCo Warp (``mjx-warp``; the ``warp`` extra) or on XLA (``mjx``; at most 4 runs
+per call on the CPU backend, see :data:`~mjx_multiarm.pickplace.backends.MJX_CPU_BATCH`).
 Run r of seed S draws its objects and initial configuration from ``(S, r)``, so a seed picks
 the same runs on either backend.
 
@@ -100,16 +102,20 @@ def _chunks(plans: RunPlan, size: int) -> list[tuple[int, RunPlan]]:
     return [(start, jax.tree.map(lambda x, s=start: x[s:s + size], plans)) for start in range(0, n, size)]
 
 
+#: The MJX backends and their implementation (:data:`mjx_multiarm.pickplace.backends.MJX_IMPLS`).
+MJX_BACKENDS = {"mjx-warp": "warp", "mjx": "jax"}
+
+
 def run_all(plans: RunPlan, backend: str, checkpoint, workers: int, batch: int, max_steps: int,
             safe: bool = False) -> list[dict]:
     """Every run's result dict, in run order."""
     chunks = _chunks(plans, batch)
-    if backend == "mjx":
+    if backend in MJX_BACKENDS:
         from mjx_multiarm.pickplace.backends import run_mjx
         from mjx_multiarm.pickplace.scene import build_scene
 
-        step = _policy_step(checkpoint, safe)
-        return [dataclasses.asdict(r) for _, chunk in chunks for r in run_mjx(build_scene(), step, chunk, max_steps)]
+        step, impl = _policy_step(checkpoint, safe), MJX_BACKENDS[backend]
+        return [dataclasses.asdict(r) for _, chunk in chunks for r in run_mjx(build_scene(), step, chunk, max_steps, impl=impl)]
     if workers <= 1:
         return [r for _, chunk in chunks for r in _run_mujoco_chunk(checkpoint, safe, chunk, max_steps)]
     context = multiprocessing.get_context("spawn")  # JAX does not survive fork
@@ -209,7 +215,8 @@ def render_runs(plans: RunPlan, count: int, checkpoint, out: pathlib.Path, max_s
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=500, help="runs (default 500, the paper's)")
-    parser.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco")
+    parser.add_argument("--backend", choices=["mujoco", *MJX_BACKENDS], default="mujoco",
+                        help="MuJoCo C (default), MJX on MuJoCo Warp, or MJX on XLA")
     parser.add_argument("--seed", type=int, default=0, help="picks the runs: run r draws from (seed, r)")
     parser.add_argument("--objects", help="comma-separated object per arm for every run (default: drawn)")
     parser.add_argument("--checkpoint", type=pathlib.Path, help="policy file or run directory (default: the shipped policy)")

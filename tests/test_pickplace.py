@@ -282,12 +282,13 @@ def test_timeouts_and_collisions_end_runs(scene):
 
 @pytest.mark.xdist_group("grasp_table")  # one worker computes the grasp table for all of them
 def test_mjx_runs_in_batches_of_at_most_four_on_cpu(scene, monkeypatch):
-    """On the CPU backend MJX batches of 8 runs hang in XLA's runtime (jaxlib 0.10.2), so
-    ``run_mjx`` splits the runs into batches of 4, padding the last with its last run."""
+    """On the CPU backend XLA's MJX batches of 8 runs hang in XLA's runtime (jaxlib 0.10.2), so
+    ``run_mjx`` splits the runs into batches of 4, padding the last with its last run;
+    MuJoCo Warp takes them all at once, or in batches of the size asked for."""
     assert jax.default_backend() == "cpu"
     batches = []
 
-    def fake_batch(scene, policy_step, plans, max_control_steps, chunk):
+    def fake_batch(scene, policy_step, plans, max_control_steps, chunk, impl):
         batches.append(np.asarray(plans.objects)[:, 0].tolist())
         return [int(o) for o in np.asarray(plans.objects)[:, 0]]
 
@@ -299,6 +300,14 @@ def test_mjx_runs_in_batches_of_at_most_four_on_cpu(scene, monkeypatch):
     batches.clear()
     assert backends.run_mjx(scene, None, jax.tree.map(lambda x: x[:2], six), max_control_steps=5) == [0, 1]
     assert batches == [[0, 1]]
+    batches.clear()
+    assert backends.run_mjx(scene, None, six, max_control_steps=5, impl="warp") == [0, 1, 2, 3, 4, 5]
+    assert batches == [[0, 1, 2, 3, 4, 5]]
+    batches.clear()
+    assert backends.run_mjx(scene, None, six, max_control_steps=5, impl="warp", batch=4) == [0, 1, 2, 3, 4, 5]
+    assert batches == [[0, 1, 2, 3], [4, 5, 5, 5]]
+    with pytest.raises(ValueError, match="impl must be one of"):
+        backends.run_mjx(scene, None, six, impl="c")
 
 
 @pytest.mark.slow
@@ -311,6 +320,21 @@ def test_mjx_backend_agrees_with_mujoco(scene):
     for a, b in zip(c, x):
         assert (a.cause, a.cause_phase, a.phases, a.control_steps) == (b.cause, b.cause_phase, b.phases, b.control_steps)
         np.testing.assert_allclose(a.object_pos, b.object_pos, atol=5e-3)
+
+
+@pytest.mark.slow
+def test_mjx_warp_backend_agrees_with_mujoco_over_whole_runs(scene):
+    """Four whole runs (every phase, to the end) in one batch on MJX's MuJoCo Warp and on
+    MuJoCo C: the same outcome, final phases and control steps, every object in the bin on
+    both (where the objects land in the bin differs: a drop is chaotic)."""
+    four = plans.plan_runs(scene, 1000, 4)
+    step = Planner.load().batched(4)
+    c = backends.run_mujoco(scene, step, four)
+    x = backends.run_mjx(scene, step, four, impl="warp")
+    for a, b in zip(c, x):
+        assert a.success and b.success
+        assert (a.cause, a.phases, a.control_steps) == (b.cause, b.phases, b.control_steps)
+        np.testing.assert_allclose(a.object_pos, b.object_pos, atol=0.15)
 
 
 def test_cli_rejects_bad_input(tmp_path, capsys):

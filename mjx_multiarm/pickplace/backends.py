@@ -1,5 +1,7 @@
 """Physics backends of the pick-and-place runs: MuJoCo C (CPU, runs in lockstep in one
-process) and MJX (runs batched under ``jit``/``vmap``). Both drive the same controller
+process) and MJX (runs batched under ``jit``/``vmap``) in either of its implementations:
+MuJoCo Warp (``impl="warp"``: Warp kernels on the CPU or an NVIDIA GPU, any batch) or XLA
+(``impl="jax"``). All drive the same controller
 (:func:`mjx_multiarm.pickplace.protocol.make_controller`) with the same scene and plans.
 
 A run starts with every arm at its initial configuration and the objects placed, then
@@ -187,20 +189,32 @@ def _sensors_mujoco(scene: PickPlaceScene, datas, touched: np.ndarray) -> Sensor
 # MJX
 
 
+#: MJX implementations of the physics: ``"jax"`` (XLA) and ``"warp"`` (MuJoCo Warp kernels
+#: called from JAX; the ``warp`` extra, ``pip install ".[warp]"``; CPU or NVIDIA GPU).
+MJX_IMPLS = ("jax", "warp")
+#: Contacts (per run; one list for the batch) and constraint rows (per run) MuJoCo Warp
+#: allocates: twice and seven times MuJoCo C's largest counts over 16 whole runs of seed
+#: 5000 (31 contacts, 148 rows; benchmarks/RESULTS.md). A batch that runs out raises.
+WARP_CONTACTS_PER_RUN, WARP_CONSTRAINT_ROWS = 64, 1024
+
+
 @functools.cache
-def _mjx_advance(scene: PickPlaceScene, policy_step, chunk: int, max_steps: int):
+def _mjx_advance(scene: PickPlaceScene, policy_step, chunk: int, max_steps: int, impl: str = "jax"):
     """The jitted step of a batch of runs: ``chunk`` control steps (one per scene, policy,
-    chunk and step limit: later batches of the same size reuse its compilation)."""
-    model = mjx.put_model(scene.model)
+    chunk, step limit and implementation: later batches of the same size reuse its
+    compilation). Its arguments are batched along their first axis, ``world`` being each
+    run's index in the batch (MuJoCo Warp keeps the contacts of every run in one list)."""
+    model = mjx.put_model(scene.model, impl=impl)
     control = make_controller(policy_step, scene, max_steps)
     arm_act = jnp.asarray(scene.arm_actuators)
     finger_act = jnp.asarray(scene.finger_actuators)
     welds = jnp.asarray(scene.welds)
+    per_run = _per_run_fields(impl)
 
     def physics(geom_pos, eq_data):
         return model.tree_replace({"geom_pos": geom_pos, "eq_data": eq_data})
 
-    def one_step(plan, geom_pos, eq_data, d, state, sensors):
+    def one_step(world, plan, geom_pos, eq_data, d, state, sensors):
         previous = state.command
         state, cmd = control(plan, state, sensors)
         pos, quat = relative_pose(d.xpos[scene.ee_body], d.xquat[scene.ee_body], d.xpos[scene.object_body],
@@ -216,23 +230,43 @@ def _mjx_advance(scene: PickPlaceScene, policy_step, chunk: int, max_steps: int)
             ctrl = d.ctrl.at[arm_act].set(_lerp(previous.arm_target, cmd.arm_target, k))
             ctrl = ctrl.at[finger_act].set(_lerp(previous.gripper, cmd.gripper, k)[:, None])
             d = mjx.step(m, d.replace(ctrl=ctrl))
-            return d, touched | _contacts_mjx(scene, d)
+            return d, touched | _contacts_mjx(scene, d, world, impl)
 
         new_d, touched = jax.lax.fori_loop(0, SUBSTEPS, substep, (d, jnp.zeros((NUM_ARMS, TOUCH_KINDS), bool)))
-        new_d = jax.tree.map(lambda old, new: jnp.where(state.ended, old, new), d, new_d)
+        new_d = per_run(lambda old, new: jnp.where(state.ended, old, new), d, new_d)  # an ended run stands still
         return eq_data, new_d, state, _sense_mjx(scene, new_d, touched)
 
-    def advance(plan, geom_pos, eq_data, d, state, sensors):
+    def advance(world, plan, geom_pos, eq_data, d, state, sensors):
         def body(_, carry):
-            return one_step(plan, geom_pos, *carry)
+            return one_step(world, plan, geom_pos, *carry)
         return jax.lax.fori_loop(0, chunk, body, (eq_data, d, state, sensors))
 
     return jax.jit(jax.vmap(advance))
 
 
-def _contacts_mjx(scene: PickPlaceScene, d) -> jnp.ndarray:
-    c = d._impl.contact
-    return arm_contacts(scene, c.geom[:, 0], c.geom[:, 1], c.dist, xp=jnp)
+def _per_run_fields(impl: str):
+    """``fn`` mapped over the fields of two ``mjx.Data`` that hold one run's state: every
+    field on XLA; on MuJoCo Warp not the contact list and buffer sizes, which the batch's
+    runs share (they pass through from the newer data)."""
+    if impl == "jax":
+        return jax.tree.map
+    from mujoco.mjx.warp.types import DATA_NON_VMAP
+
+    def mapped(fn, old, new):
+        out = jax.tree.map(fn, old, new)
+        return out.replace(_impl=out._impl.replace(**{name: getattr(new._impl, name) for name in DATA_NON_VMAP}))
+
+    return mapped
+
+
+def _contacts_mjx(scene: PickPlaceScene, d, world, impl: str) -> jnp.ndarray:
+    """[arms, kinds] this run's contacts after a physics step (:func:`arm_contacts`)."""
+    if impl == "jax":
+        c = d._impl.contact
+        return arm_contacts(scene, c.geom[:, 0], c.geom[:, 1], c.dist, xp=jnp)
+    c = d._impl  # MuJoCo Warp: one list for the batch, each contact tagged with its run
+    mine = (jnp.arange(c.contact__dist.shape[0]) < c.nacon[0]) & (c.contact__worldid == world)
+    return arm_contacts(scene, c.contact__geom[:, 0], c.contact__geom[:, 1], jnp.where(mine, c.contact__dist, jnp.inf), xp=jnp)
 
 
 def _sense_mjx(scene: PickPlaceScene, d, touched) -> Sensors:
@@ -240,40 +274,69 @@ def _sense_mjx(scene: PickPlaceScene, d, touched) -> Sensors:
                    object_pos=d.xpos[jnp.asarray(scene.object_body)].astype(jnp.float32), contacts=touched)
 
 
-#: Runs per jitted MJX call on the CPU backend: with jaxlib 0.10.2, batches of 8 runs hang
-#: after compiling (every XLA CPU worker waits for work; benchmarks/RESULTS.md), 1-4 run.
+#: Runs per jitted call of XLA's MJX on the CPU backend: with jaxlib 0.10.2, batches of 8
+#: runs hang after compiling (every XLA CPU worker waits for work; benchmarks/RESULTS.md),
+#: 1-4 run. MuJoCo Warp (``impl="warp"``) runs any batch.
 MJX_CPU_BATCH = 4
 
 
 def run_mjx(scene: PickPlaceScene, policy_step, plans: RunPlan, max_control_steps: int = MAX_CONTROL_STEPS,
-            chunk: int = 20) -> list[RunResult]:
-    """Run every plan of ``plans`` (leading dim = runs) on MJX from the settled MuJoCo C
-    states, as one batch (on the CPU backend: batches of :data:`MJX_CPU_BATCH` runs, the
-    last one padded); the host checks between chunks of ``chunk`` control steps whether
-    every run has ended."""
+            chunk: int = 20, impl: str = "jax", batch: int | None = None) -> list[RunResult]:
+    """Run every plan of ``plans`` (leading dim = runs) on MJX (``impl``: one of
+    :data:`MJX_IMPLS`) from the settled MuJoCo C states, in batches of ``batch`` runs (all
+    of them by default; at most :data:`MJX_CPU_BATCH` with XLA on the CPU backend), the last
+    one padded; the host checks between chunks of ``chunk`` control steps whether every run
+    of a batch has ended."""
+    if impl not in MJX_IMPLS:
+        raise ValueError(f"impl must be one of {MJX_IMPLS}, got {impl!r}")
     runs = len(plans.objects)
-    size = min(MJX_CPU_BATCH, runs) if jax.default_backend() == "cpu" else runs
+    size = min(batch or runs, runs)
+    if impl == "jax" and jax.default_backend() == "cpu":
+        size = min(size, MJX_CPU_BATCH)
     results = []
     for first in range(0, runs, size):
         rows = np.minimum(np.arange(first, first + size), runs - 1)  # the last batch repeats its last run
-        batch = jax.tree.map(lambda x, rows=rows: x[rows], plans)
-        results += _run_mjx_batch(scene, policy_step, batch, max_control_steps, chunk)[:runs - first]
+        part = jax.tree.map(lambda x, rows=rows: x[rows], plans)
+        results += _run_mjx_batch(scene, policy_step, part, max_control_steps, chunk, impl)[:runs - first]
     return results
 
 
+#: The fields of a settled MuJoCo C run that MuJoCo Warp's batched data takes over (the rest
+#: is recomputed by the first physics step; the controller reads the bodies' poses before it).
+_WARP_STATE = ("time", "qpos", "qvel", "act", "ctrl", "qacc_warmstart", "eq_active", "xpos", "xquat")
+
+
+def _batched_data(models, datas, impl: str):
+    """The runs' settled MuJoCo C states as one batched ``mjx.Data``."""
+    if impl == "jax":
+        return jax.tree.map(lambda *xs: jnp.stack(xs), *[mjx.put_data(m, d) for m, d in zip(models, datas)])
+    runs = len(datas)
+    state = {name: jnp.asarray(np.stack([getattr(d, name) for d in datas])) for name in _WARP_STATE}
+
+    def one(state):
+        d = mjx.make_data(models[0], impl="warp", naconmax=WARP_CONTACTS_PER_RUN * runs, njmax=WARP_CONSTRAINT_ROWS)
+        return d.replace(**{name: value.astype(getattr(d, name).dtype) for name, value in state.items()})
+
+    return jax.vmap(one)(state)
+
+
 def _run_mjx_batch(scene: PickPlaceScene, policy_step, plans: RunPlan, max_control_steps: int,
-                   chunk: int) -> list[RunResult]:
+                   chunk: int, impl: str) -> list[RunResult]:
     """One jitted MJX batch of runs."""
     runs = len(plans.objects)
     start = time.perf_counter()
     models, datas = _settled(scene, plans)
-    advance = _mjx_advance(scene, policy_step, chunk, max_control_steps)
-    d = jax.tree.map(lambda *xs: jnp.stack(xs), *[mjx.put_data(m, d) for m, d in zip(models, datas)])
+    advance = _mjx_advance(scene, policy_step, chunk, max_control_steps, impl)
+    d = _batched_data(models, datas, impl)
     geom_pos = jnp.asarray(np.stack([m.geom_pos for m in models]), d.qpos.dtype)
     eq_data = jnp.asarray(np.stack([m.eq_data for m in models]), d.qpos.dtype)
     sensors = _sensors_mujoco(scene, datas, np.zeros((runs, NUM_ARMS, TOUCH_KINDS), bool))
     state = jax.vmap(initial_state)(plans)
+    world = jnp.arange(runs)
     while not bool(np.asarray(state.ended).all()):  # the controller ends every run by max_control_steps
-        eq_data, d, state, sensors = advance(plans, geom_pos, eq_data, d, state, sensors)
+        eq_data, d, state, sensors = advance(world, plans, geom_pos, eq_data, d, state, sensors)
+        if impl == "warp" and np.asarray(d._impl.overflow).any():
+            raise RuntimeError(f"MuJoCo Warp ran out of contacts or constraint rows ({WARP_CONTACTS_PER_RUN} contacts per "
+                               f"run, {WARP_CONSTRAINT_ROWS} rows): raise WARP_CONTACTS_PER_RUN / WARP_CONSTRAINT_ROWS")
     seconds = (time.perf_counter() - start) / runs
     return RunResult.collect(state, np.asarray(d.xpos[:, scene.object_body]), seconds)
