@@ -180,10 +180,11 @@ def _write_runs_csv(path: pathlib.Path, results: list[dict]) -> None:
     buffer = io.StringIO()
     writer = csv.writer(buffer)
     writer.writerow(["run", "objects", "success", "cause", "cause_phase", "strict_cause", "kernel_cause", "phases",
-                     "control_steps", "physics_steps", "seconds"])
+                     "phase_starts", "control_steps", "physics_steps", "seconds"])
     for r in results:
+        starts = " ".join("/".join(str(step) for step in arm.values()) for arm in r["phase_steps"])
         writer.writerow([r["run"], " ".join(r["objects"]), int(r["success"]), r["cause"], r["cause_phase"] or "",
-                         r["strict_cause"], r["kernel_cause"], " ".join(r["phases"]), r["control_steps"],
+                         r["strict_cause"], r["kernel_cause"], " ".join(r["phases"]), starts, r["control_steps"],
                          r["physics_steps"], f"{r['seconds']:.3f}"])
     atomic_write(path, lambda f: f.write(buffer.getvalue().encode()))
 

@@ -8,11 +8,18 @@ import numpy as np
 import pytest
 from conftest import random_bases, random_joints
 
-from mjx_multiarm.env.observation import ELEMENT_SIZE, ArmSnapshot, observe
+from mjx_multiarm.env import observation
+from mjx_multiarm.env.observation import ELEMENT_SIZE, ArmSnapshot
 from mjx_multiarm.geometry.evaluate import base_pose_arrays
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import load_arm
 from mjx_multiarm.geometry.transforms import quat_conjugate, quat_mul
+
+# Compiled once per input shape, as the environment runs them (eagerly, every operation
+# would compile on its own).
+observe = jax.jit(observation.observe, static_argnames="radius")
+nearness_features = jax.jit(observation.nearness_features)
+clearance_features = jax.jit(observation.clearance_features)
 
 
 def _snapshot(bases, joints, targets_joints):
@@ -117,7 +124,6 @@ def test_nearness_features_are_the_link_point_distances_to_each_observed_arm(sce
         CLOSING_SCALE,
         NEARNESS_CAP,
         InputFeatures,
-        nearness_features,
     )
 
     bases = scene[0]
@@ -133,7 +139,7 @@ def test_nearness_features_are_the_link_point_distances_to_each_observed_arm(sce
             np.testing.assert_allclose(features[i, slot, :10], np.minimum(d_now.min(axis=1), NEARNESS_CAP), atol=2e-5)
             np.testing.assert_allclose(features[i, slot, 10], CLOSING_SCALE * (d_before.min() - d_now.min()), atol=3e-4)
             np.testing.assert_allclose(np.linalg.norm(features[i, slot, 11:]), d_now.min(), atol=2e-5)
-    both = np.asarray(InputFeatures(goal=True, nearness=True)(obs))
+    both = np.asarray(jax.jit(InputFeatures(goal=True, nearness=True))(obs))
     assert both.shape == (5, 5, 127) == (5, 5, InputFeatures(goal=True, nearness=True).size)
     np.testing.assert_array_equal(both[..., -14:], features)
 
@@ -148,7 +154,6 @@ def test_clearance_features_are_each_own_geoms_exact_distance_to_each_observed_a
         CLEARANCE_SCALE,
         CLOSING_SCALE,
         InputFeatures,
-        clearance_features,
     )
     from mjx_multiarm.geometry.collision import geom_clearances
     from mjx_multiarm.geometry.scene import build_scene
@@ -176,7 +181,7 @@ def test_clearance_features_are_each_own_geoms_exact_distance_to_each_observed_a
             np.testing.assert_allclose(features[i, slot, geoms:], CLOSING_SCALE * (d_before - d_now), atol=1e-4)
             near += (d_now < CLEARANCE_CAP).sum()
     assert near > 0  # the scene has arms within the cap
-    both = np.asarray(InputFeatures(goal=True, clearance=True)(obs))
+    both = np.asarray(jax.jit(InputFeatures(goal=True, clearance=True))(obs))
     assert both.shape == (5, 5, ELEMENT_SIZE + 6 + 2 * geoms) == (5, 5, InputFeatures(goal=True, clearance=True).size)
     np.testing.assert_array_equal(both[..., -2 * geoms:], features)
     padded, _ = observe(pos, quat, jnp.arange(5) < 3, before, now)  # masked (all-zero) elements

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import csv
 import json
 import pathlib
 
@@ -91,6 +92,32 @@ def test_pose_ik_reaches_reachable_poses():
     assert float(jnp.max(position_error)) < 1e-3 and float(jnp.max(angle_error)) < 1e-2
 
 
+def test_the_stored_grasp_table_is_the_packaged_scenes(scene, tmp_path, monkeypatch):
+    """``grasp_table`` reads the stored table of the packaged scene (regenerate it with
+    ``python -m mjx_multiarm.pickplace.plans`` when the scene changes); a table stored for
+    another scene (another fingerprint) is not used."""
+    with np.load(plans.GRASP_TABLE) as stored:
+        assert str(stored["fingerprint"]) == plans.scene_fingerprint(scene), "stale grasp table"
+        other = dict(stored)
+    other["fingerprint"] = "another scene"
+    np.savez(tmp_path / "table.npz", **other)
+    monkeypatch.setattr(plans, "GRASP_TABLE", tmp_path / "table.npz")
+    monkeypatch.setattr(plans, "compute_grasp_table", lambda scene: "computed")
+    assert plans.grasp_table.__wrapped__(scene) == "computed"
+
+
+@pytest.mark.slow
+def test_the_stored_grasp_table_equals_a_fresh_computation(scene):
+    """The stored table is what :func:`plans.compute_grasp_table` makes of the packaged scene
+    (the same grasps; configurations within 1e-4 rad: float32 IK on another CPU)."""
+    fresh = plans.compute_grasp_table(scene)
+    stored = plans.grasp_table(scene)
+    assert sorted(fresh) == sorted(stored)
+    np.testing.assert_array_equal(fresh["grasp_index"], stored["grasp_index"])
+    for key in fresh:
+        np.testing.assert_allclose(fresh[key], stored[key], atol=1e-4, err_msg=key)
+
+
 @pytest.mark.slow
 def test_scripted_grasp_lifts_and_holds_every_object(scene):
     """Each arm at its grasp configuration closes the gripper, welds its object and lifts it
@@ -175,7 +202,6 @@ def test_arms_collide_with_each_other_in_the_physics_not_with_themselves(scene):
     assert flags[0, protocol.TOUCH_ARM] and flags[1, protocol.TOUCH_ARM]
 
 
-@pytest.mark.xdist_group("grasp_table")  # one worker computes the grasp table for all of them
 def test_initial_configurations_touch_nothing_and_low_arms_rise(scene):
     """Initial configurations are free in the whole scene (grippers against the bin, floor
     and objects, as the original checks them), and ``rise`` lifts every arm that starts
@@ -268,7 +294,6 @@ def test_the_collision_model_flags_every_physics_contact_of_the_arms(scene):
     assert (touched & ~verdict["reaching"]).any()
 
 
-@pytest.mark.xdist_group("grasp_table")  # one worker computes the grasp table for all of them
 def test_timeouts_and_collisions_end_runs(scene):
     """A step limit too short to finish ends the run as a timeout; run 0 of seed 1000 starts
     with arm 1's gripper beside its object and ends in an arm-object collision while reaching
@@ -278,9 +303,13 @@ def test_timeouts_and_collisions_end_runs(scene):
     assert results[0].cause == "arm-object" and results[0].cause_phase in ("reach_above", "reach_pregrasp")
     assert not results[0].success
     assert results[1].cause == "timeout" and results[1].control_steps == 20
+    for result in results:  # every arm's phases in order, from rise at step 0, ending in its final phase
+        assert [list(arm)[-1] for arm in result.phase_steps] == result.phases
+        for arm in result.phase_steps:
+            assert list(arm) == list(protocol.PHASES[:len(arm)]) and arm["rise"] == 0
+            assert list(arm.values()) == sorted(arm.values()) and max(arm.values()) < result.control_steps
 
 
-@pytest.mark.xdist_group("grasp_table")  # one worker computes the grasp table for all of them
 def test_mjx_runs_in_batches_of_at_most_four_on_cpu(scene, monkeypatch):
     """On the CPU backend XLA's MJX batches of 8 runs hang in XLA's runtime (jaxlib 0.10.2), so
     ``run_mjx`` splits the runs into batches of 4, padding the last with its last run;
@@ -325,8 +354,9 @@ def test_mjx_backend_agrees_with_mujoco(scene):
 @pytest.mark.slow
 def test_mjx_warp_backend_agrees_with_mujoco_over_whole_runs(scene):
     """Four whole runs (every phase, to the end) in one batch on MJX's MuJoCo Warp and on
-    MuJoCo C: the same outcome, final phases and control steps, every object in the bin on
-    both (where the objects land in the bin differs: a drop is chaotic)."""
+    MuJoCo C: the same outcome, every arm's phase sequence with each phase begun within 2
+    control steps, the same control steps, every object in the bin on both (where the
+    objects land in the bin differs: a drop is chaotic)."""
     four = plans.plan_runs(scene, 1000, 4)
     step = Planner.load().batched(4)
     c = backends.run_mujoco(scene, step, four)
@@ -334,6 +364,8 @@ def test_mjx_warp_backend_agrees_with_mujoco_over_whole_runs(scene):
     for a, b in zip(c, x):
         assert a.success and b.success
         assert (a.cause, a.phases, a.control_steps) == (b.cause, b.phases, b.control_steps)
+        assert list(a.phase_steps[0]) == list(protocol.PHASES)
+        assert backends.phase_timing_difference(a, b) <= 2, (a.phase_steps, b.phase_steps)
         np.testing.assert_allclose(a.object_pos, b.object_pos, atol=0.15)
 
 
@@ -363,6 +395,9 @@ def test_cli_writes_outcomes_and_renders(tmp_path, capsys):
     assert summary["runs"] == 2 and set(summary) >= {"success_rate", "paper_success_rate", "valid_runs", "failures",
                                                      "kernel_failures", "kernel_missed", "kernel_only"}
     assert (tmp_path / "runs.csv").read_text().count("\n") == 3 and (tmp_path / "summary.md").exists()
+    for row in csv.DictReader((tmp_path / "runs.csv").open()):  # per arm: the step each phase began, rise at 0
+        starts = [arm.split("/") for arm in row["phase_starts"].split()]
+        assert len(starts) == NUM_ARMS and all(arm[0] == "0" for arm in starts)
     frames = sorted((tmp_path / "render" / "run_0").glob("*.png"))
     if not frames:
         pytest.skip("rendering unavailable on this machine")

@@ -45,6 +45,7 @@ from flax import struct
 from mjx_multiarm.geometry.collision import (
     Contacts,
     ground_geoms,
+    kernel_jit,
     scene_contacts,
     self_and_ground_distances,
 )
@@ -147,6 +148,7 @@ def _reach_now(scene: Scene, frames, delta, remaining) -> jnp.ndarray:
     return jnp.where(reach > 0, jnp.minimum(reach, now + remaining[..., None, None, None] * beyond), 0.0)
 
 
+@functools.partial(jax.jit, static_argnames=("scene",))
 def motion_bounds(scene: Scene, joints_from, joints_to, active) -> jnp.ndarray:
     """[..., A] how far (m) any point of each arm's geoms can move along the straight motion
     (from :func:`geom_reach`; the march tightens it with the arms' poses)."""
@@ -202,6 +204,7 @@ def _fraction(distance, rate):
     return jnp.where(rate > 0, distance / jnp.where(rate > 0, rate, 1.0), jnp.where(distance >= 0, jnp.inf, -jnp.inf))
 
 
+@kernel_jit("scene", "margin", "max_evaluations", "smallest_step")
 def certified_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, active, margin: float = 0.0,
                        max_evaluations: int = MAX_EVALUATIONS, smallest_step: float = SMALLEST_STEP) -> CertifiedMotion:
     """Certified collision verdict of the straight motion ``joints_from -> joints_to`` (module doc).

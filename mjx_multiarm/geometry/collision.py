@@ -446,6 +446,26 @@ def default_kernel(scene: Scene) -> str:
     return _checked_kernel(scene, os.environ.get(KERNEL_VARIABLE) or ("numba" if numba_wins else "xla"))
 
 
+def kernel_jit(*static_argnames: str):
+    """``jax.jit`` with these static arguments, compiled once per value of
+    ``$MJX_MULTIARM_COLLISION_KERNEL`` (which :func:`default_kernel` reads when tracing): one
+    compiled program for an eager call instead of one per operation."""
+
+    def wrap(fn):
+        per_kernel = {}
+
+        @functools.wraps(fn)
+        def call(*args, **kwargs):
+            key = os.environ.get(KERNEL_VARIABLE)
+            if key not in per_kernel:
+                per_kernel[key] = jax.jit(fn, static_argnames=static_argnames)
+            return per_kernel[key](*args, **kwargs)
+
+        return call
+
+    return wrap
+
+
 def _checked_kernel(scene: Scene, kernel: str) -> str:
     if kernel not in KERNELS:
         raise ValueError(f"collision kernel {kernel!r} ({KERNEL_VARIABLE} or kernel=): expected one of {KERNELS}")
@@ -626,6 +646,7 @@ def _chunked(kernel, chunk: int, *inputs):
     return jax.tree.map(lambda x: jnp.moveaxis(x, 0, -2).reshape(*x.shape[1:-1], -1)[..., :n], out)
 
 
+@kernel_jit("scene", "max_distance")
 def scene_contacts(scene: Scene, base_pos, base_quat, joints, active, max_distance: float = math.inf) -> Contacts:
     """Kinematics + collision of padded scenes at one configuration.
 
@@ -647,6 +668,7 @@ def num_substeps(joints_from, joints_to, resolution: float = SWEEP_RESOLUTION) -
     return max(1, math.ceil(largest / resolution - 1e-9))
 
 
+@kernel_jit("scene", "substeps", "max_distance")
 def swept_contacts(scene: Scene, base_pos, base_quat, joints_from, joints_to, active, substeps: int,
                    end_frames: ArmFrames | None = None, max_distance: float = math.inf) -> Contacts:
     """Collision along the straight joint-space motion ``joints_from -> joints_to``.

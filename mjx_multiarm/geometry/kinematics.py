@@ -7,6 +7,9 @@ The only Python loop runs over the arm's 8 bodies while tracing (it unrolls into
 
 from __future__ import annotations
 
+import functools
+
+import jax
 import jax.numpy as jnp
 from flax import struct
 
@@ -51,6 +54,7 @@ def _transform(body_pos, body_rot, body_index, local_points):
     return pos + jnp.einsum("...ij,...j->...i", rot, local_points)
 
 
+@functools.partial(jax.jit, static_argnames=("arm",))
 def forward_kinematics(arm: ArmModel, base_pos, base_quat, joints) -> ArmFrames:
     """Forward kinematics of arms placed at base poses.
 

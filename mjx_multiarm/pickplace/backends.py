@@ -57,6 +57,7 @@ class RunResult:
     control_steps: int
     physics_steps: int
     phases: list[str]  # every arm's phase at the end
+    phase_steps: list[dict[str, int]]  # every arm's phases in order, each with the control step it began
     object_pos: list[list[float]]  # final object positions
     seconds: float  # wall time of its batch, per run
 
@@ -74,9 +75,20 @@ class RunResult:
                 strict_cause=strict, strict_success=success and strict == "none",
                 kernel_cause=CAUSES[int(state.kernel_cause[r])],
                 control_steps=int(state.step[r]), physics_steps=int(state.step[r]) * SUBSTEPS,
-                phases=[PHASES[int(p)] for p in state.phase[r]], object_pos=np.round(object_pos[r], 4).tolist(),
+                phases=[PHASES[int(p)] for p in state.phase[r]],
+                phase_steps=[{PHASES[p]: int(k) for p, k in enumerate(arm) if k >= 0} for arm in state.entered[r]],
+                object_pos=np.round(object_pos[r], 4).tolist(),
                 seconds=seconds))
         return results
+
+
+def phase_timing_difference(a: RunResult, b: RunResult) -> int | None:
+    """The largest difference, in control steps, between the steps at which the same arm
+    began the same phase in two runs of one plan; ``None`` where an arm's phase sequences
+    differ (one reached a phase the other did not)."""
+    if [list(arm) for arm in a.phase_steps] != [list(arm) for arm in b.phase_steps]:
+        return None
+    return max(abs(x[p] - y[p]) for x, y in zip(a.phase_steps, b.phase_steps) for p in x)
 
 
 @functools.cache

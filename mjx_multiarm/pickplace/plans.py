@@ -4,13 +4,19 @@ and the configurations the phases head for.
 A run's draws (objects, initial configuration) come from ``np.random.default_rng([seed, run])``.
 Everything else is a deterministic table per arm and object (:func:`grasp_table`): where the
 object stands, which GraspIt grasp the arm uses, the pregrasp / grasp configurations, and the
-policy's targets.
+policy's targets. Its IK takes half a minute, so the table of the packaged scene is stored
+(``assets/grasp_table.npz``, written by ``python -m mjx_multiarm.pickplace.plans``) and
+used while its fingerprint (the compiled scene and the grasps) matches; any other scene
+computes its own.
 """
 
 from __future__ import annotations
 
+import argparse
 import copy
 import functools
+import hashlib
+import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -18,6 +24,7 @@ import mujoco
 import numpy as np
 from flax import struct
 
+from mjx_multiarm.files import atomic_write
 from mjx_multiarm.geometry.evaluate import evaluate_arms
 from mjx_multiarm.geometry.ik import solve_poses, solve_positions
 from mjx_multiarm.geometry.kinematics import forward_kinematics
@@ -35,6 +42,7 @@ from mjx_multiarm.pickplace.scene import (
     PAD_CENTRE_X,
     PAD_HALF,
     PickPlaceScene,
+    build_scene,
 )
 
 PREGRASP_BACKOFF = 0.10
@@ -55,6 +63,7 @@ RESTING = {"cube": np.array([[1.0, 0.0, 0.0, 0.0], [np.sqrt(0.5), np.sqrt(0.5), 
 SPAWN_YAWS = np.pi / 2 * np.arange(4)
 IK_ITERATIONS = 150
 ROWS = 4096  # IK and collision calls are padded to a multiple of this (one compilation)
+GRASP_TABLE = pathlib.Path(__file__).resolve().parents[1] / "assets" / "grasp_table.npz"
 
 
 @struct.dataclass
@@ -169,8 +178,35 @@ def _pose_mul(pos_a, quat_a, pos_b, quat_b):
     return pos, np.asarray(quat_mul(jnp.asarray(quat_a), jnp.asarray(quat_b)))
 
 
+#: The model fields a grasp table depends on: the bodies' tree, joints and every geom.
+FINGERPRINT_FIELDS = ("body_parentid", "body_pos", "body_quat", "jnt_type", "jnt_bodyid", "jnt_pos", "jnt_axis", "jnt_range",
+                      "geom_type", "geom_bodyid", "geom_size", "geom_pos", "geom_quat", "geom_contype", "geom_conaffinity",
+                      "mesh_vertadr", "mesh_vertnum", "mesh_vert")
+
+
+def scene_fingerprint(scene: PickPlaceScene) -> str:
+    """sha256 of what a grasp table is computed from: the compiled model's bodies, joints
+    and geoms (:data:`FINGERPRINT_FIELDS`) and every object's grasps."""
+    digest = hashlib.sha256()
+    for field in FINGERPRINT_FIELDS:
+        digest.update(np.ascontiguousarray(getattr(scene.model, field)).tobytes())
+    for name in scene.object_names:
+        digest.update(np.ascontiguousarray(scene.assets.objects[name].grasps, np.float64).tobytes())
+    return digest.hexdigest()
+
+
 @functools.cache
 def grasp_table(scene: PickPlaceScene) -> dict:
+    """:func:`compute_grasp_table` of ``scene``: the stored table where it was computed from
+    this scene (same fingerprint), else computed."""
+    if GRASP_TABLE.is_file():
+        with np.load(GRASP_TABLE) as stored:
+            if str(stored["fingerprint"]) == scene_fingerprint(scene):
+                return {k: stored[k] for k in stored.files if k != "fingerprint"}
+    return compute_grasp_table(scene)
+
+
+def compute_grasp_table(scene: PickPlaceScene) -> dict:
     """Per arm and object: the spawn pose, the chosen grasp and its configurations, and the
     policy's reach target; per arm: the dump pose and configuration (numpy, world, wxyz).
 
@@ -327,3 +363,18 @@ def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None, approac
     if start_height > 0:
         plans = plans.replace(rise_joints=rise_joints(plans.init_joints, start_height))
     return jax.tree.map(lambda x: x.astype(np.int32 if x.dtype.kind == "i" else np.float32), plans)
+
+
+def main(argv=None) -> None:
+    """Command line: compute the packaged scene's grasp table and store it (atomically)."""
+    parser = argparse.ArgumentParser(description="Compute the packaged pick-and-place scene's grasp table and store it.")
+    parser.add_argument("--out", type=pathlib.Path, default=GRASP_TABLE, help="output .npz (default: the packaged asset)")
+    args = parser.parse_args(argv)
+    scene = build_scene()
+    table = compute_grasp_table(scene)
+    atomic_write(args.out, lambda f: np.savez(f, fingerprint=scene_fingerprint(scene), **table))
+    print(f"wrote {args.out}: {NUM_ARMS} arms x {len(scene.object_names)} objects")
+
+
+if __name__ == "__main__":
+    main()

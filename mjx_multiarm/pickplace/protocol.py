@@ -125,6 +125,7 @@ class Commands:
 class ControllerState:
     phase: jnp.ndarray  # [4] int32
     phase_step: jnp.ndarray  # [4] control steps into the phase
+    entered: jnp.ndarray  # [4, len(PHASES)] control step at which each arm entered each phase (-1: not yet)
     duration: jnp.ndarray  # [4] control steps of a scripted phase
     start: jnp.ndarray  # [4, 6] scripted move from ...
     goal: jnp.ndarray  # [4, 6] ... to
@@ -160,10 +161,11 @@ def initial_state(plan: RunPlan) -> ControllerState:
     goal = jnp.asarray(plan.rise_joints, jnp.float32)
     frames = forward_kinematics(load_arm(), BASE_POS, BASE_QUAT, joints)
     zeros = jnp.zeros(NUM_ARMS, jnp.int32)
+    entered = jnp.full((NUM_ARMS, len(PHASES)), -1, jnp.int32).at[:, RISE].set(0)
     duration = jnp.where(jnp.any(goal != joints, axis=-1), _move_steps(joints, goal), 0).max()
     duration = jnp.full(NUM_ARMS, duration)
     return ControllerState(
-        phase=zeros + RISE, phase_step=zeros, duration=duration, start=joints, goal=goal,
+        phase=zeros + RISE, phase_step=zeros, entered=entered, duration=duration, start=joints, goal=goal,
         command=Commands(joints, jnp.zeros(NUM_ARMS, jnp.float32), jnp.zeros(NUM_ARMS, bool), jnp.zeros(NUM_ARMS, bool)),
         prev_joints=joints, prev_target_pos=frames.ee_pos, prev_target_quat=frames.ee_quat,
         step=jnp.int32(0), ended=jnp.bool_(False), success=jnp.bool_(False), cause=jnp.int32(NONE),
@@ -275,7 +277,10 @@ def make_controller(policy_step, scene: PickPlaceScene, max_steps: int = MAX_CON
                           jnp.where(all_done, jnp.where(in_bin, NONE, OUTSIDE_BIN), TIMEOUT))
         new_state = ControllerState(
             phase=jnp.where(state.ended, state.phase, phase),
-            phase_step=phase_step + 1, duration=duration, start=start, goal=goal, command=commands,
+            phase_step=phase_step + 1,
+            entered=jnp.where(~state.ended & done[:, None] & (jnp.arange(len(PHASES)) == phase[:, None]), state.step,
+                              state.entered),
+            duration=duration, start=start, goal=goal, command=commands,
             prev_joints=joints, prev_target_pos=targets_pos, prev_target_quat=targets_quat,
             step=state.step + jnp.where(state.ended, 0, 1),
             ended=state.ended | ends,
