@@ -29,7 +29,7 @@ from common import cpu_name
 from mjx_multiarm.pickplace.backends import run_mujoco
 from mjx_multiarm.pickplace.plans import plan_runs
 from mjx_multiarm.pickplace.render import RunRecorder
-from mjx_multiarm.pickplace.scene import ARM, build_scene
+from mjx_multiarm.pickplace.scene import ARM, build_scene, collision_model
 from mjx_multiarm.planner.policy import Planner
 
 GRIPPER_PARTS = ("finger", "pad")
@@ -86,14 +86,14 @@ def main(argv=None) -> None:
         failed = [int(row["run"]) for row in csv.DictReader(f) if row["cause"] == "arm-arm"]
     print(f"# {cpu_name()}; {len(failed)} arm-arm failures in {args.run_dir}")
     scene = build_scene()
-    plans = plan_runs(scene, settings["seed"], max(failed, default=0) + 1, None, settings["approach_height"],
-                      settings["start_height"])
-    subset = jax.tree.map(lambda x: x[np.array(failed, int)], plans)
+    subset = plan_runs(scene, settings["seed"], failed, None, settings["approach_height"], settings["start_height"],
+                       settings["safe"]) if failed else None
     recorder = ContactRecorder(scene, range(len(failed)), subset)
     checkpoint = None if settings["checkpoint"] == "shipped" else settings["checkpoint"]
     if failed:
-        run_mujoco(scene, Planner.load(checkpoint, safe=settings["safe"]).batched(4), subset,
-                   settings["max_steps"], on_step=recorder.on_step)
+        arm_xml, obstacles = collision_model()
+        policy = Planner.load(checkpoint, safe=settings["safe"], arm_xml=arm_xml, obstacles=obstacles)
+        run_mujoco(scene, policy.batched(4), subset, settings["max_steps"], on_step=recorder.on_step)
     recorder.close()
     rows = {failed[k]: {"control_step": step, "pairs": sorted({tuple(sorted((a, b))) for a, b, _, _ in found}),
                         "deepest_mm": 1000 * max(depth for _, _, depth, _ in found)}

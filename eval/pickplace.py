@@ -227,7 +227,8 @@ def main(argv=None) -> None:
                         help=f"arms starting lower first rise straight up to this ee height (default {START_HEIGHT}; "
                              "0: no rise, as the original; with --approach-height 0: the original protocol)")
     parser.add_argument("--safe", action="store_true",
-                        help="shield the policy's team steps (beyond the paper): a step that would collide between arms is replaced")
+                        help="shield the policy's team steps (beyond the paper): a step that would collide between arms is replaced; "
+                             "a run whose scripted rise is not certified free in the shield's model draws its start again")
     parser.add_argument("--workers", type=int, default=os.cpu_count(), help="MuJoCo C processes (default: one per core)")
     parser.add_argument("--batch", type=int, default=25, help="runs per lockstep batch (MuJoCo C) or per jitted call (MJX)")
     parser.add_argument("--max-steps", type=int, default=MAX_CONTROL_STEPS,
@@ -266,7 +267,7 @@ def main(argv=None) -> None:
     out = args.out or pathlib.Path("runs") / f"pickplace-{time.strftime('%Y%m%d-%H%M%S')}"
     start = time.perf_counter()
     try:
-        plans = plan_runs(scene, args.seed, args.runs, objects, args.approach_height, args.start_height)
+        plans = plan_runs(scene, args.seed, args.runs, objects, args.approach_height, args.start_height, args.safe)
     except ValueError as error:
         parser.error(str(error))
     planning = time.perf_counter() - start

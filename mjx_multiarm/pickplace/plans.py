@@ -25,10 +25,12 @@ import numpy as np
 from flax import struct
 
 from mjx_multiarm.files import atomic_write
+from mjx_multiarm.geometry.certified import certified_contacts
 from mjx_multiarm.geometry.evaluate import evaluate_arms
 from mjx_multiarm.geometry.ik import solve_poses, solve_positions
 from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.geometry.robot import load_arm
+from mjx_multiarm.geometry.scene import Scene, build_scene as build_arm_scene
 from mjx_multiarm.geometry.transforms import quat_mul, quat_to_mat, wxyz_to_xyzw
 from mjx_multiarm.pickplace.scene import (
     ARM,
@@ -43,6 +45,7 @@ from mjx_multiarm.pickplace.scene import (
     PAD_HALF,
     PickPlaceScene,
     build_scene,
+    collision_model,
 )
 
 PREGRASP_BACKOFF = 0.10
@@ -51,6 +54,10 @@ APPROACH_HEIGHT = 0.25
 #: Before its first policy phase, an arm whose end effector starts lower than this (m) rises
 #: straight up to it (``rise``; 0: no rise, the original protocol).
 START_HEIGHT = 0.3
+#: Clearance (m) the shielded protocol's rise keeps in the shield's collision model
+#: (:func:`redraw_uncertified_starts`): room for the servos' lag behind the rise's commands
+#: when the policy phases begin.
+START_CLEARANCE = 0.01
 #: Initial configurations: home + U(-0.4, 0.4) rad per joint, collision-free in the physics
 #: scene (arms, grippers, bin, floor, objects) and the collision model, ee above 0.2 m.
 INIT_NOISE = 0.4
@@ -321,15 +328,19 @@ def sample_initial_joints(rng: np.random.Generator, clear=None, max_tries: int =
     raise RuntimeError(f"no collision-free initial configuration in {max_tries} draws")
 
 
-def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None, approach_height: float = APPROACH_HEIGHT,
-              start_height: float = START_HEIGHT) -> RunPlan:
-    """``runs`` run plans drawn from ``seed`` (run r uses ``np.random.default_rng([seed, r])``):
-    one object per arm uniformly (or ``objects``: names or indices, one per arm, for every
-    run), initial configurations as the original; the ``rise`` to ``start_height`` (m) and
-    the ``reach_above`` waypoint ``approach_height`` (m) above each pregrasp position (0
-    skips either)."""
-    if runs < 1:
-        raise ValueError(f"runs must be >= 1, got {runs}")
+def plan_runs(scene: PickPlaceScene, seed: int, runs, objects=None, approach_height: float = APPROACH_HEIGHT,
+              start_height: float = START_HEIGHT, safe: bool = False) -> RunPlan:
+    """The plans of ``runs`` (a count: runs 0 .. runs - 1; or a sequence of run indices) drawn
+    from ``seed`` (run r uses ``np.random.default_rng([seed, r])``): one object per arm
+    uniformly (or ``objects``: names or indices, one per arm, for every run), initial
+    configurations as the original; the ``rise`` to ``start_height`` (m) and the
+    ``reach_above`` waypoint ``approach_height`` (m) above each pregrasp position (0 skips
+    either). ``safe`` (the shielded protocol): a run whose whole rise is not certified free
+    in the shield's collision model (:func:`~mjx_multiarm.pickplace.scene.collision_model`)
+    draws its initial configuration again (:func:`redraw_uncertified_starts`)."""
+    indices = list(range(runs)) if isinstance(runs, (int, np.integer)) else [int(r) for r in runs]
+    if not indices or min(indices) < 0:
+        raise ValueError(f"runs must be a count >= 1 or non-negative run indices, got {runs}")
     if not 0 <= approach_height <= 0.5:
         raise ValueError(f"approach_height must be in [0, 0.5] m, got {approach_height}")
     if not 0 <= start_height <= 0.8:
@@ -346,14 +357,17 @@ def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None, approac
     above_joints = typical_joints(arm_rows, above_pos.reshape(-1, 3))
     above = forward_kinematics(load_arm(), BASE_POS[arm_rows], BASE_QUAT[arm_rows], jnp.asarray(above_joints))
     above_quat = np.asarray(above.ee_quat, np.float64).reshape(NUM_ARMS, nobj, 4)
-    plans = []
+    plans, rngs, clears = [], [], []
     arms = np.arange(NUM_ARMS)
     data = mujoco.MjData(copy.deepcopy(scene.model))
-    for r in range(runs):
+    for r in indices:
         rng = np.random.default_rng([seed, r])
         objs = fixed if fixed is not None else rng.integers(len(scene.object_names), size=NUM_ARMS)
         spawn = table["spawn"][arms, objs]
-        init = sample_initial_joints(rng, lambda q, o=objs, p=spawn: not _arms_touch_scene(scene, data, o, p, q))
+        clear = functools.partial(_physics_clear, scene, data, objs, spawn)
+        init = sample_initial_joints(rng, clear)
+        rngs.append(rng)
+        clears.append(clear)
         plans.append(RunPlan(
             objects=objs.astype(np.int32), init_joints=init, rise_joints=init, object_pose=spawn,
             above_pos=above_pos[arms, objs], above_quat=above_quat[arms, objs], reach_pos=table["reach_pos"][arms, objs], reach_quat=table["reach_quat"][arms, objs],
@@ -362,7 +376,57 @@ def plan_runs(scene: PickPlaceScene, seed: int, runs: int, objects=None, approac
     plans = jax.tree.map(lambda *xs: np.stack(xs), *plans)
     if start_height > 0:
         plans = plans.replace(rise_joints=rise_joints(plans.init_joints, start_height))
-    return jax.tree.map(lambda x: x.astype(np.int32 if x.dtype.kind == "i" else np.float32), plans)
+    plans = _as_executed(plans)
+    if safe:
+        model = build_arm_scene(NUM_ARMS, *collision_model())
+        plans = redraw_uncertified_starts(plans, model, rngs, clears, start_height)
+    return plans
+
+
+def _as_executed(plans: RunPlan) -> RunPlan:
+    """The plans in the dtypes the controller runs them (float32, int32)."""
+    return jax.tree.map(lambda x: np.asarray(x).astype(np.int32 if x.dtype.kind == "i" else np.float32), plans)
+
+
+def _physics_clear(scene: PickPlaceScene, data: mujoco.MjData, objects, object_pose, joints) -> bool:
+    return not _arms_touch_scene(scene, data, objects, object_pose, joints)
+
+
+def rise_certified(model: Scene, init_joints, rise_joints) -> np.ndarray:
+    """[R] whether each run's scripted ``rise`` (the whole team's straight joint motion
+    ``init_joints -> rise_joints`` [R, 4, 6], the start included) is certified free in the
+    collision model ``model`` (:func:`mjx_multiarm.geometry.certified.certified_contacts`),
+    with :data:`START_CLEARANCE` to spare."""
+    init, rise = jnp.asarray(init_joints, jnp.float32), jnp.asarray(rise_joints, jnp.float32)
+    batch = init.shape[:-2]
+    motion = certified_contacts(model, jnp.broadcast_to(jnp.asarray(BASE_POS, jnp.float32), (*batch, NUM_ARMS, 3)),
+                                jnp.broadcast_to(jnp.asarray(BASE_QUAT, jnp.float32), (*batch, NUM_ARMS, 4)),
+                                init, rise, jnp.ones((*batch, NUM_ARMS), bool), margin=START_CLEARANCE)
+    return ~np.asarray(motion.uncertified).any(axis=-1)
+
+
+def redraw_uncertified_starts(plans: RunPlan, model: Scene, rngs, clears, start_height: float,
+                              max_tries: int = 1000) -> RunPlan:
+    """``plans`` where every run's rise is certified free in the shield's collision model
+    ``model`` (:func:`rise_certified`): a run whose is not draws its initial configuration
+    again from its own stream (``rngs[i]``, continued; ``clears[i]`` its physics check) until
+    it is. Its objects stay; every other run keeps its plan. The shield can certify nothing
+    from a configuration in contact in its model, so a run that would start its policy
+    phases there could only hold (benchmarks/RESULTS.md, the deadlocks of the fifth session)."""
+    ok = rise_certified(model, plans.init_joints, plans.rise_joints)
+    init, rise = np.array(plans.init_joints), np.array(plans.rise_joints)
+    for i in np.flatnonzero(~ok):
+        for _ in range(max_tries):
+            candidate = sample_initial_joints(rngs[i], clears[i])
+            lifted = rise_joints(candidate[None], start_height)[0] if start_height > 0 else candidate
+            candidate, lifted = candidate.astype(np.float32), lifted.astype(np.float32)
+            if rise_certified(model, candidate, lifted):
+                init[i], rise[i] = candidate, lifted
+                break
+        else:
+            raise RuntimeError(f"no initial configuration of run index {i} with a rise certified free "
+                               f"in the shield's model in {max_tries} draws")
+    return plans.replace(init_joints=init, rise_joints=rise)
 
 
 def main(argv=None) -> None:
