@@ -14,7 +14,11 @@ lockstep batches spread over ``--workers`` processes) or MJX (``--batch`` runs p
 call) on MuJoCo Warp (``mjx-warp``; the ``warp`` extra) or on XLA (``mjx``; at most 4 runs
 per call on the CPU backend, see :data:`~mjx_multiarm.pickplace.backends.MJX_CPU_BATCH`).
 Run r of seed S draws its objects and initial configuration from ``(S, r)``, so a seed picks
-the same runs on either backend.
+the same runs on either backend. With ``--safe`` a run whose scripted rise is not certified
+free in the shield's collision model (1 cm to spare) draws its initial configuration again
+from the same stream (:func:`~mjx_multiarm.pickplace.plans.redraw_uncertified_starts`):
+the shield certifies nothing from a start in contact in its model, where the arms could
+only hold.
 
 Outcomes. ``success``: every arm finished its sequence with no collision under the
 original's rule (an arm in a policy phase touching another arm, the floor, the bin or an

@@ -4,8 +4,8 @@ Before a team step is executed, every arm's motion is checked against the other 
 motions with the certified motion check (:mod:`mjx_multiarm.geometry.certified`: no
 configuration along the step can touch, not only the sampled ones). Each
 arm has three motions, tried in order: the one proposed (by the policy), a step away from
-the other arms (:func:`away_joints`: up the gradient of its distance to their link
-points), and holding still. While any motion of the team collides, the colliding arms step
+the other arms and the static obstacles (:func:`away_joints`: up the gradient of its
+distance to their link points and boxes), and holding still. While any motion of the team collides, the colliding arms step
 down one option, except the one with the highest priority (lowest slot index) among those
 not yet given the right of way: it keeps its motion for one more check, so that of two
 arms that run into each other the lower one makes room and the higher one passes. An arm
@@ -84,14 +84,17 @@ def shielded_joints(scene: Scene, base_pos, base_quat, joints, proposed, active,
 
 #: Softness (m) of the smallest link-point distance whose gradient points away from the others.
 AWAY_SOFTNESS = 0.05
-#: Beyond this distance (m) of its link points to every other arm's an arm feels no push.
+#: Beyond this distance (m) of its link points to every other arm's and every obstacle an arm
+#: feels no push.
 AWAY_RANGE = 0.5
 
 
 def away_joints(scene: Scene, base_pos, base_quat, joints, active, max_step, joint_range):
     """[A, 6] every arm's joints one full step up the gradient of its smooth smallest
-    distance to the other arms' link points (the 10 points the policy observes); arms with
-    no other arm within :data:`AWAY_RANGE` stay where they are."""
+    distance from its link points (the 10 points the policy observes) to the other arms'
+    and to the scene's static obstacle boxes (a bin: a policy that does not see it would
+    otherwise push into it, held, forever); arms with nothing within :data:`AWAY_RANGE`
+    stay where they are."""
     num_arms = joints.shape[-2]
     other = active[:, None] & active[None, :] & ~jnp.eye(num_arms, dtype=bool)
 
@@ -99,11 +102,23 @@ def away_joints(scene: Scene, base_pos, base_quat, joints, active, max_step, joi
         points = forward_kinematics(scene.arm, base_pos, base_quat, q).points  # [A, 10, 3]
         gap = points[:, None, :, None, :] - points[None, :, None, :, :]  # [A, A, 10, 10, 3]
         distance = jnp.sqrt((gap * gap).sum(-1) + 1e-9)
-        distance = jnp.where(other[:, :, None, None], distance, AWAY_RANGE)
-        soft = -AWAY_SOFTNESS * jax.nn.logsumexp(-distance.reshape(num_arms, -1) / AWAY_SOFTNESS, axis=-1)
+        distance = jnp.where(other[:, :, None, None], distance, AWAY_RANGE).reshape(num_arms, -1)
+        if len(scene.obstacle_half):
+            distance = jnp.concatenate([distance, _box_distances(scene, points).reshape(num_arms, -1)], axis=-1)
+        soft = -AWAY_SOFTNESS * jax.nn.logsumexp(-distance / AWAY_SOFTNESS, axis=-1)
         return jnp.where(active, jnp.minimum(soft, AWAY_RANGE), 0.0).sum()
 
     gradient = jax.grad(clearance)(joints)
     scale = jnp.max(jnp.abs(gradient) / max_step, axis=-1, keepdims=True)
     step = jnp.where(scale > 1e-9, gradient / jnp.maximum(scale, 1e-9), 0.0)
     return jnp.clip(joints + step, joint_range[:, 0], joint_range[:, 1])
+
+
+def _box_distances(scene: Scene, points) -> jnp.ndarray:
+    """[..., P, K] signed distance of each point [..., P, 3] to each static obstacle box."""
+    frames = jnp.asarray(scene.obstacle_frames, points.dtype)  # [K, 4, 3]: centre, then axes
+    offset = points[..., :, None, :] - frames[:, 0]  # [..., P, K, 3]
+    local = jnp.einsum("...kj,kij->...ki", offset, frames[:, 1:])
+    excess = jnp.abs(local) - jnp.asarray(scene.obstacle_half, points.dtype)
+    outside = jnp.sqrt((jnp.maximum(excess, 0.0) ** 2).sum(-1) + 1e-12)
+    return outside + jnp.minimum(excess.max(-1), 0.0)
