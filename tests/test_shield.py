@@ -6,12 +6,13 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
 from conftest import facing_pair, rollout
 
 from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
-from mjx_multiarm.env.shield import AWAY, HELD, PROPOSED, away_joints
+from mjx_multiarm.env.shield import AWAY, HELD, PROPOSED, box_distances, away_joints
 from mjx_multiarm.env.wrappers import TaskBank
 from mjx_multiarm.geometry.certified import certified_contacts
 from mjx_multiarm.geometry.collision import (
@@ -19,6 +20,7 @@ from mjx_multiarm.geometry.collision import (
     scene_contacts,
     swept_contacts,
 )
+from mjx_multiarm.geometry.kinematics import forward_kinematics
 from mjx_multiarm.tasks.types import take
 
 
@@ -78,3 +80,39 @@ def test_arms_driven_into_each_other_never_collide_when_shielded():
     assert not np.asarray(dense.collided).any()
     assert np.asarray(states.metrics["shielded"][:, 0]).any(axis=0).all()  # both arms had to give way
     assert bool(final.truncated[0]) and int(final.step[0]) == 80
+
+
+def test_the_step_away_leaves_static_obstacles():
+    """An arm alone beside a box (a bin wall the policy does not see) steps away from it,
+    where without the box it would stay; the box distances are MuJoCo's (a point is a
+    sphere of radius 0)."""
+    bare = ReachingEnv(1)
+    base_pos, base_quat, active = jnp.zeros((1, 3)), jnp.array([[1.0, 0.0, 0.0, 0.0]]), jnp.ones(1, bool)
+    joints = jnp.asarray(bare.scene.arm.home, jnp.float32)[None]
+    ee = np.asarray(forward_kinematics(bare.scene.arm, base_pos, base_quat, joints).points)[0, -1]
+    box = ((float(ee[0]), float(ee[1]) + 0.15, float(ee[2])), (0.9238795, 0.0, 0.0, 0.3826834), (0.05, 0.08, 0.2))
+    walled = ReachingEnv(1, EnvConfig(), None, (box,))
+    limits = {"joint_range": bare.joint_range, "max_step": bare.max_step}
+    np.testing.assert_array_equal(np.asarray(away_joints(bare.scene, base_pos, base_quat, joints, active, **limits)),
+                                  np.asarray(joints))
+
+    def nearest(q):
+        points = forward_kinematics(walled.scene.arm, base_pos, base_quat, q).points
+        return float(box_distances(walled.scene, points).min())
+
+    away = away_joints(walled.scene, base_pos, base_quat, joints, active, **limits)
+    assert nearest(away) > nearest(joints) + 0.005
+    assert np.isclose(np.abs(np.asarray(away - joints)) / np.asarray(bare.max_step), 1.0, atol=1e-4).any()
+    # The signed distances against MuJoCo's, outside and inside the box.
+    m = mujoco.MjModel.from_xml_string(
+        f"""<mujoco><worldbody><geom name="box" type="box" pos="{' '.join(map(str, box[0]))}"
+        quat="{' '.join(map(str, box[1]))}" size="{' '.join(map(str, box[2]))}"/>
+        <body name="probe" mocap="true"><geom name="point" type="sphere" size="1e-6" contype="0" conaffinity="0"/></body>
+        </worldbody></mujoco>""")
+    d = mujoco.MjData(m)
+    points = np.asarray(box[0]) + np.random.default_rng(0).uniform(-0.3, 0.3, (64, 3))
+    ours = np.asarray(box_distances(walled.scene, jnp.asarray(points, jnp.float32)))[:, 0]
+    for point, distance in zip(points, ours):
+        d.mocap_pos[0] = point
+        mujoco.mj_kinematics(m, d)
+        np.testing.assert_allclose(distance, mujoco.mj_geomDistance(m, d, 0, 1, 1.0, None) + 1e-6, atol=2e-5)

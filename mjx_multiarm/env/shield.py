@@ -104,7 +104,7 @@ def away_joints(scene: Scene, base_pos, base_quat, joints, active, max_step, joi
         distance = jnp.sqrt((gap * gap).sum(-1) + 1e-9)
         distance = jnp.where(other[:, :, None, None], distance, AWAY_RANGE).reshape(num_arms, -1)
         if len(scene.obstacle_half):
-            distance = jnp.concatenate([distance, _box_distances(scene, points).reshape(num_arms, -1)], axis=-1)
+            distance = jnp.concatenate([distance, box_distances(scene, points).reshape(num_arms, -1)], axis=-1)
         soft = -AWAY_SOFTNESS * jax.nn.logsumexp(-distance / AWAY_SOFTNESS, axis=-1)
         return jnp.where(active, jnp.minimum(soft, AWAY_RANGE), 0.0).sum()
 
@@ -114,7 +114,7 @@ def away_joints(scene: Scene, base_pos, base_quat, joints, active, max_step, joi
     return jnp.clip(joints + step, joint_range[:, 0], joint_range[:, 1])
 
 
-def _box_distances(scene: Scene, points) -> jnp.ndarray:
+def box_distances(scene: Scene, points) -> jnp.ndarray:
     """[..., P, K] signed distance of each point [..., P, 3] to each static obstacle box."""
     frames = jnp.asarray(scene.obstacle_frames, points.dtype)  # [K, 4, 3]: centre, then axes
     offset = points[..., :, None, :] - frames[:, 0]  # [..., P, K, 3]
