@@ -12,7 +12,7 @@ import pytest
 from conftest import facing_pair, rollout
 
 from mjx_multiarm.env.reaching import EnvConfig, ReachingEnv
-from mjx_multiarm.env.shield import AWAY, HELD, PROPOSED, box_distances, away_joints
+from mjx_multiarm.env.shield import AWAY, HELD, PROPOSED, away_joints, box_distances
 from mjx_multiarm.env.wrappers import TaskBank
 from mjx_multiarm.geometry.certified import certified_contacts
 from mjx_multiarm.geometry.collision import (
