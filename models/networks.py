@@ -13,7 +13,12 @@ elements of the arms it sees (masked elements first, itself last; see
   mean (6) and the log-variance (6, mapped from [-1, 1] onto [log 1e-8, log 0.1]) of a
   diagonal Gaussian over the 6 delta-joint actions, as the original code. With
   ``squash=True`` (standard SAC) the last layer is linear, the log-std is clipped to
-  [-20, 2], and samples are squashed by tanh.
+  [-20, 2], and samples are squashed by tanh. With ``components`` = K > 1 the policy is a
+  mixture of K such Gaussians (a multimodal head for detours that may go either way): the
+  last layer gives 12 numbers per component and a linear layer from the 64 features gives
+  the mixture's logits; the deterministic action is the heaviest component's mean.
+  :func:`widened` turns a one-component actor into an equal mixture of copies of it (the
+  same policy), the start of a mixture fine-tune.
 - :class:`Critic`: encoder, the action concatenated to its output, MLP -> 128 -> 64 -> 1.
   :class:`TwinCritic` holds two independent ones.
 
@@ -24,7 +29,7 @@ Linear layers start as PyTorch's (and the original's): weights uniform in
 from __future__ import annotations
 
 import math
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -94,47 +99,106 @@ class MLP(nnx.Module):
         self.final_tanh = final_tanh
 
     def __call__(self, x):
-        for i, layer in enumerate(self.layers):
-            x = layer(x)
-            if i < len(self.layers) - 1 or self.final_tanh:
-                x = jnp.tanh(x)
+        x = self.layers[-1](self.features(x))
+        return jnp.tanh(x) if self.final_tanh else x
+
+    def features(self, x):
+        """The last layer's input: every layer but the last, each followed by tanh."""
+        for layer in self.layers[:-1]:
+            x = jnp.tanh(layer(x))
         return x
 
 
+class Mixture(NamedTuple):
+    """A policy's action distribution at each observation: a mixture of diagonal Gaussians
+    (one component for the original's Gaussian), before any tanh squashing."""
+
+    mean: jnp.ndarray  # [..., K, 6]
+    log_std: jnp.ndarray  # [..., K, 6]
+    log_weights: jnp.ndarray  # [..., K], normalized
+
+
+def _gaussian_log_density(x, dist: Mixture):
+    """log N(x; mean_k, std_k) of every component [..., K] at ``x`` [..., 6]."""
+    z = (x[..., None, :] - dist.mean) * jnp.exp(-dist.log_std)
+    return jnp.sum(-0.5 * z**2 - dist.log_std - 0.5 * math.log(2 * math.pi), axis=-1)
+
+
 class Actor(nnx.Module):
-    """Gaussian policy over delta-joint actions."""
+    """Gaussian (or Gaussian-mixture) policy over delta-joint actions."""
 
-    def __init__(self, rngs: nnx.Rngs, inputs: ElementFeatures, actions: int, squash: bool = False):
-        self.squash = squash
+    def __init__(self, rngs: nnx.Rngs, inputs: ElementFeatures, actions: int, squash: bool = False, components: int = 1):
+        if components < 1:
+            raise ValueError(f"an actor needs at least one mixture component, got {components}")
+        self.squash, self.actions, self.components = squash, actions, components
         self.encoder = SequenceEncoder(rngs, inputs)
-        self.head = MLP((HIDDEN, *MLP_LAYERS, 2 * actions), rngs, final_tanh=not squash)
+        self.head = MLP((HIDDEN, *MLP_LAYERS, 2 * actions * components), rngs, final_tanh=not squash)
+        if components > 1:
+            self.logits = _linear(MLP_LAYERS[-1], components, rngs)
 
-    def distribution(self, obs, mask, std_scale=1.0):
-        """(mean [..., 6], log-std [..., 6]).
+    def distribution(self, obs, mask, std_scale=1.0) -> Mixture:
+        """The action distribution at each observation.
 
         ``std_scale`` (<= 1, may be traced) shrinks the upper bound of the standard deviation
         (a noise schedule; 1: the fixed bounds)."""
-        out = self.head(self.encoder(obs, mask))
+        features = self.head.features(self.encoder(obs, mask))
+        out = self.head.layers[-1](features)
+        out = (out if self.squash else jnp.tanh(out)).reshape(*out.shape[:-1], self.components, 2 * self.actions)
         mean, raw = jnp.split(out, 2, axis=-1)
+        if self.components > 1:
+            log_weights = jax.nn.log_softmax(self.logits(features), axis=-1)
+        else:
+            log_weights = jnp.zeros(out.shape[:-1], out.dtype)
         log_scale = jnp.log(std_scale)
         if self.squash:
-            return mean, jnp.clip(raw, LOG_STD_BOUNDS[0], LOG_STD_BOUNDS[1] + log_scale)
+            return Mixture(mean, jnp.clip(raw, LOG_STD_BOUNDS[0], LOG_STD_BOUNDS[1] + log_scale), log_weights)
         low, high = (math.log(v) for v in VARIANCE_BOUNDS)
         log_variance = low + (raw + 1.0) * 0.5 * (high + 2.0 * log_scale - low)
-        return mean, 0.5 * log_variance
+        return Mixture(mean, 0.5 * log_variance, log_weights)
 
     def __call__(self, obs, mask, key=None, std_scale=1.0):
-        """(action, log-probability); the mean action (squashed if so) when ``key`` is None."""
-        return self.sample(*self.distribution(obs, mask, std_scale), key)
+        """(action, log-probability); the deterministic action (:meth:`mode`) when ``key`` is None."""
+        return self.sample(self.distribution(obs, mask, std_scale), key)
 
-    def sample(self, mean, log_std, key=None):
-        """(action, log-probability) of the distribution (mean, log_std); see ``__call__``."""
+    def mode(self, dist: Mixture):
+        """The deterministic action [..., 6]: the heaviest component's mean (squashed if so)."""
+        heaviest = jnp.argmax(dist.log_weights, axis=-1)
+        mean = jnp.take_along_axis(dist.mean, heaviest[..., None, None], axis=-2)[..., 0, :]
+        return jnp.tanh(mean) if self.squash else mean
+
+    def component_modes(self, dist: Mixture):
+        """Every component's mean [..., K, 6] (squashed if so)."""
+        return jnp.tanh(dist.mean) if self.squash else dist.mean
+
+    def sample(self, dist: Mixture, key=None):
+        """(action, log-probability) drawn from ``dist``; (:meth:`mode`, 0) when ``key`` is None."""
         if key is None:
-            action = jnp.tanh(mean) if self.squash else mean
+            action = self.mode(dist)
             return action, jnp.zeros(action.shape[:-1], action.dtype)
-        noise = jax.random.normal(key, mean.shape, mean.dtype)
-        sample = mean + jnp.exp(log_std) * noise
-        log_prob = jnp.sum(-0.5 * noise**2 - log_std - 0.5 * math.log(2 * math.pi), axis=-1)
+        if self.components > 1:
+            key, pick = jax.random.split(key)
+            chosen = jax.random.categorical(pick, dist.log_weights)[..., None, None]
+            mean, log_std = (jnp.take_along_axis(x, chosen, axis=-2)[..., 0, :] for x in (dist.mean, dist.log_std))
+        else:
+            mean, log_std = dist.mean[..., 0, :], dist.log_std[..., 0, :]
+        sample = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape, mean.dtype)
+        return self._squashed(sample, self._log_density(sample, dist))
+
+    def component_samples(self, dist: Mixture, key):
+        """(actions [..., K, 6], log-probabilities [..., K]): one reparameterized sample of
+        every component, each with its density under the whole mixture, so that
+        ``sum_k w_k f(a_k)`` is an exact expectation over the components (the actor loss)."""
+        samples = dist.mean + jnp.exp(dist.log_std) * jax.random.normal(key, dist.mean.shape, dist.mean.dtype)
+        log_prob = jax.vmap(self._log_density, in_axes=(-2, None), out_axes=-1)(samples, dist)
+        return self._squashed(samples, log_prob)
+
+    def _log_density(self, x, dist: Mixture):
+        """The mixture's log-density at ``x`` [..., 6] (before squashing) [...]."""
+        if self.components == 1:
+            return _gaussian_log_density(x, dist)[..., 0]
+        return jax.nn.logsumexp(dist.log_weights + _gaussian_log_density(x, dist), axis=-1)
+
+    def _squashed(self, sample, log_prob):
         if self.squash:
             action = jnp.tanh(sample)
             return action, log_prob - jnp.sum(jnp.log1p(-(action**2) + 1e-6), axis=-1)
@@ -142,9 +206,29 @@ class Actor(nnx.Module):
 
     def log_prob(self, obs, mask, action):
         """Log-density of ``action`` (unsquashed policies only: behaviour cloning)."""
-        mean, log_std = self.distribution(obs, mask)
-        z = (action - mean) * jnp.exp(-log_std)
-        return jnp.sum(-0.5 * z**2 - log_std - 0.5 * math.log(2 * math.pi), axis=-1)
+        return self._log_density(action, self.distribution(obs, mask))
+
+
+def widened(actor: Actor, components: int) -> Actor:
+    """``actor`` (one component) as an equal mixture of ``components`` copies of its Gaussian:
+    the same policy (density, samples' distribution, deterministic action), whose copies
+    the gradient then pulls apart. The start of a mixture fine-tune of a trained actor."""
+    if actor.components != 1:
+        raise ValueError(f"only a one-component actor can be widened, this one has {actor.components}")
+    wide = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), actor.encoder.inputs, actor.actions, actor.squash, components))
+    graphdef, state = nnx.split(wide)
+    params = dict(nnx.to_flat_state(nnx.state(actor, nnx.Param)))
+    last = ("head", "layers", len(MLP_LAYERS))
+
+    def value(path, abstract):
+        if path[:3] == last:  # the mean and variance outputs, once per component
+            return jnp.tile(params[path][...], (1,) * (abstract.ndim - 1) + (components,))
+        if path[0] == "logits":  # equal weights
+            return jnp.zeros(abstract.shape, abstract.dtype)
+        return params[path][...]
+
+    flat = [(path, nnx.Param(value(path, abstract))) for path, abstract in nnx.to_flat_state(state)]
+    return nnx.merge(graphdef, nnx.from_flat_state(flat))
 
 
 class Critic(nnx.Module):

@@ -2,15 +2,22 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import nnx
 
+from mjx_multiarm.env.observation import InputFeatures
+from models.networks import Actor, Mixture
 from train.agent import (
+    LOSER_SHARE,
     SACConfig,
     bc_update,
+    cloning_error,
     create_agent,
     critic_loss,
     expert_bc_loss,
@@ -76,27 +83,56 @@ def _assert_same_step(before, after, step):
     assert np.linalg.norm(taken - wanted) < 1e-3 * np.linalg.norm(wanted)
 
 
-def test_actor_update_reusing_the_critic_encodings_equals_the_full_actor_loss():
+@pytest.mark.parametrize("components", [1, 3])
+def test_actor_update_reusing_the_critic_encodings_equals_the_full_actor_loss(components):
     """The actor loss values its actions with the critics' encodings of the batch from the
     critic loss: the loss and the actor's step equal those of the textbook actor loss that
-    runs the critics again on the observations."""
+    runs the critics again on the observations. A mixture's loss is the expectation over its
+    components: each component's reparameterized sample, weighted by the mixture weight."""
     import optax
 
-    agent = create_agent(jax.random.key(0))
+    config = SACConfig(components=components)
+    agent = create_agent(jax.random.key(0), config)
     batch = _batch(jax.random.key(1), 64)
     key = jax.random.key(2)
-    updated, metrics = update(agent, batch, key, SACConfig())
+    updated, metrics = update(agent, batch, key, config)
     actor_key = jax.random.split(key)[1]
 
     def textbook(params):
         actor = nnx.merge(agent.actor_def, params)
-        action, log_prob = actor.sample(*actor.distribution(batch.obs, batch.mask), actor_key)
-        return jnp.mean(jnp.exp(agent.log_alpha) * log_prob - jnp.minimum(*agent.critics()(batch.obs, batch.mask, action)))
+        dist = actor.distribution(batch.obs, batch.mask)
+        actions, log_probs = actor.component_samples(dist, actor_key)
+        loss = 0.0
+        for k in range(components):
+            q = jnp.minimum(*agent.critics()(batch.obs, batch.mask, actions[:, k]))
+            loss = loss + jnp.exp(dist.log_weights[:, k]) * (jnp.exp(agent.log_alpha) * log_probs[:, k] - q)
+        return jnp.mean(loss)
 
     loss, grads = jax.jit(jax.value_and_grad(textbook))(agent.actor)
     np.testing.assert_allclose(metrics["actor_loss"], loss, rtol=1e-6)
-    step, _ = optax.adam(SACConfig().actor_lr).update(grads, agent.actor_opt, agent.actor)
+    step, _ = optax.adam(config.actor_lr).update(grads, agent.actor_opt, agent.actor)
     _assert_same_step(agent.actor, updated.actor, step)
+    if components == 1:  # one component: the sample the policy acts with
+        actor = agent.policy()
+        action, log_prob = actor.sample(actor.distribution(batch.obs, batch.mask), actor_key)
+        sampled, sampled_log_prob = actor.component_samples(actor.distribution(batch.obs, batch.mask), actor_key)
+        np.testing.assert_allclose(sampled[:, 0], action, rtol=1e-6)
+        np.testing.assert_allclose(sampled_log_prob[:, 0], log_prob, rtol=1e-5)
+
+
+def test_cloning_a_mixture_trains_the_nearest_component_and_makes_it_the_heaviest():
+    """Relaxed winner-takes-all: the error is mostly the nearest component's, plus the
+    cross-entropy of the weights toward it; one component: the plain squared error of the
+    mean."""
+    actor = Actor(nnx.Rngs(0), InputFeatures(), 6, components=2)
+    mean = jnp.array([[[-0.5] * 6, [0.5] * 6]])
+    dist = Mixture(mean, jnp.zeros((1, 2, 6)), jnp.log(jnp.array([[0.75, 0.25]])))
+    target = jnp.full((1, 6), 0.4)
+    expected = (1 - LOSER_SHARE) * 6 * 0.1**2 + LOSER_SHARE * 6 * 0.9**2 - math.log(0.25)
+    np.testing.assert_allclose(cloning_error(actor, dist, target), [expected], rtol=1e-6)
+    single = Actor(nnx.Rngs(0), InputFeatures(), 6)
+    one = Mixture(mean[:, 1:], jnp.zeros((1, 1, 6)), jnp.zeros((1, 1)))
+    np.testing.assert_allclose(cloning_error(single, one, target), [6 * 0.1**2], rtol=1e-6)
 
 
 def test_behaviour_cloned_start_then_sac():
@@ -109,7 +145,8 @@ def test_behaviour_cloned_start_then_sac():
     batch = _batch(jax.random.key(1), 64)
 
     def cloning(params):
-        mean, _ = nnx.merge(agent.actor_def, params).distribution(batch.obs, batch.mask)
+        actor = nnx.merge(agent.actor_def, params)
+        mean = actor.mode(actor.distribution(batch.obs, batch.mask))
         error = jnp.sum((mean - batch.action) ** 2, axis=-1)
         return jnp.sum(jnp.where(batch.expert, error, 0.0)) / batch.expert.sum()
 
@@ -141,24 +178,26 @@ def test_learned_temperature_and_behaviour_cloning():
 
 def test_expert_bc_loss_counts_expert_rows_the_critic_prefers():
     batch = _batch(jax.random.key(0), 8)  # rows 0, 2, 4, 6 are expert steps
-    action = jnp.zeros((8, 6))
+    error = jnp.sum(batch.action**2, axis=-1)  # a policy whose action is 0 everywhere
     q_data = jnp.array([1.0, 1.0, 1.0, 1.0, -1.0, 1.0, -1.0, 1.0])  # the expert's action is better on rows 0 and 2 only
-    loss, share = expert_bc_loss(action, batch, q_data, jnp.zeros(8))
+    loss, share = expert_bc_loss(error, batch, q_data, jnp.zeros(8))
     expected = np.mean(np.sum(np.asarray(batch.action)[[0, 2]] ** 2, axis=-1))
     np.testing.assert_allclose(loss, expected, rtol=1e-6)
     assert float(share) == pytest.approx(2 / 8)
-    loss, share = expert_bc_loss(action, batch, -q_data - 2, jnp.zeros(8))  # the critic prefers the policy everywhere
+    loss, share = expert_bc_loss(error, batch, -q_data - 2, jnp.zeros(8))  # the critic prefers the policy everywhere
     assert float(loss) == 0.0 and float(share) == 0.0
-    loss, share = expert_bc_loss(action, batch, -q_data - 2, jnp.zeros(8), filtered=False)  # every expert row
+    loss, share = expert_bc_loss(error, batch, -q_data - 2, jnp.zeros(8), filtered=False)  # every expert row
     expected = np.mean(np.sum(np.asarray(batch.action)[[0, 2, 4, 6]] ** 2, axis=-1))
     np.testing.assert_allclose(loss, expected, rtol=1e-6)
     assert float(share) == pytest.approx(4 / 8)
 
 
-def test_expert_bc_pulls_the_mean_action_toward_the_expert_actions():
+@pytest.mark.parametrize("components", [1, 2])
+def test_expert_bc_pulls_the_mean_action_toward_the_expert_actions(components):
     batch = _batch(jax.random.key(1), 64)
 
     def expert_error(config):
+        config = dataclasses.replace(config, components=components)
         agent = create_agent(jax.random.key(0), config)
         for key in jax.random.split(jax.random.key(2), 30):
             agent, metrics = update(agent, batch, key, config)

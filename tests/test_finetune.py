@@ -18,8 +18,11 @@ from flax import nnx
 from mjx_multiarm.expert.planner import PlannerConfig
 from mjx_multiarm.expert.precompute import precompute
 from mjx_multiarm.options import apply
-from mjx_multiarm.planner.policy_file import load_policy
+from mjx_multiarm.env.observation import InputFeatures
+from mjx_multiarm.geometry.robot import NUM_JOINTS
+from mjx_multiarm.planner.policy_file import load_policy, save_policy
 from mjx_multiarm.tasks.generate import GenerationSpec, generate_dataset
+from models.networks import Actor
 from train import sac
 from train.config import PRESETS
 from train.finetune import DEFAULT_ACTOR_FREEZE, lineage
@@ -53,6 +56,18 @@ def test_init_takes_the_networks_and_curriculum_level_from_the_policy_file():
         _config(["--init", "nowhere.npz"])
 
 
+def test_a_one_component_policy_fine_tunes_as_a_mixture_and_a_mixture_keeps_its_size(tmp_path):
+    """--components K widens a one-component parent; a mixture parent fixes K."""
+    assert _config(["--init", str(SHIPPED), "--components", "3"]).train.sac.components == 3
+    assert _config(["--init", str(SHIPPED)]).train.sac.components == 1
+    mixture = tmp_path / "mixture.npz"
+    save_policy(mixture, nnx.state(Actor(nnx.Rngs(0), InputFeatures(goal=True), NUM_JOINTS, components=2)), False, {},
+                inputs=InputFeatures(goal=True), components=2)
+    assert _config(["--init", str(mixture)]).train.sac.components == 2
+    with pytest.raises(ValueError, match=r"networks differ .*--components 2"):
+        _config(["--init", str(mixture), "--components", "3"])
+
+
 def _read_back(path):
     policy = load_policy(path)
     return policy, _params(nnx.state(policy.actor))
@@ -81,6 +96,14 @@ def test_fine_tunes_start_from_their_parent_and_record_the_chain(tmp_path):
     assert lineage(grandchild.provenance)[0]["total_env_steps"] == 320
     with pytest.raises(ValueError, match="networks differ"):
         train(apply(base, {"init": str(tmp_path / "a"), "train.sac.inputs.goal": True}), tmp_path / "d", **QUIET)
+
+    # a mixture fine-tune of a one-component parent starts as the parent's policy
+    train(apply(child_config, {"train.sac.components": 3}), tmp_path / "m", **QUIET)
+    wide = load_policy(tmp_path / "m" / "policy.npz")
+    assert wide.components == 3 and lineage(wide.provenance)[0]["sha256"] == parent.meta["sha256"]
+    obs = np.random.default_rng(0).normal(size=(5, 2, 107)).astype(np.float32)
+    mask = np.ones((5, 2), bool)
+    np.testing.assert_allclose(wide.actor(obs, mask)[0], parent.actor(obs, mask)[0], atol=1e-6)
 
 
 @pytest.mark.slow

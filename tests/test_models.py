@@ -15,8 +15,10 @@ from models.networks import (
     FEW_SEQUENCES,
     VARIANCE_BOUNDS,
     Actor,
+    Mixture,
     SequenceEncoder,
     TwinCritic,
+    widened,
 )
 
 
@@ -74,7 +76,8 @@ def test_log_probabilities_match_the_gaussian():
     obs, mask = _sequences(jax.random.key(3), 4, 3, 3)
     action, log_prob = actor(obs, mask, jax.random.key(4))
     np.testing.assert_allclose(actor.log_prob(obs, mask, action), log_prob, rtol=1e-4, atol=1e-4)
-    mean, log_std = actor.distribution(obs, mask)
+    dist = actor.distribution(obs, mask)
+    mean, log_std = dist.mean[..., 0, :], dist.log_std[..., 0, :]
     variance = np.exp(2 * np.asarray(log_std))
     assert np.all(variance >= VARIANCE_BOUNDS[0] * (1 - 1e-4)) and np.all(variance <= VARIANCE_BOUNDS[1] * (1 + 1e-4))
     expected = -0.5 * ((action - mean) ** 2 / variance).sum(-1) - 0.5 * np.log(variance).sum(-1) - 3 * math.log(2 * math.pi)
@@ -87,8 +90,8 @@ def test_log_probabilities_match_the_gaussian():
 def test_noise_schedule_shrinks_the_standard_deviation_bound():
     actor = Actor(nnx.Rngs(0), InputFeatures(), NUM_JOINTS)
     obs, mask = _sequences(jax.random.key(3), 4, 3, 3)
-    mean, log_std = actor.distribution(obs, mask)
-    narrow_mean, narrow_log_std = actor.distribution(obs, mask, std_scale=0.2)
+    mean, log_std, _ = (x[..., 0, :] for x in actor.distribution(obs, mask))
+    narrow_mean, narrow_log_std, _ = (x[..., 0, :] for x in actor.distribution(obs, mask, std_scale=0.2))
     np.testing.assert_allclose(narrow_mean, mean)  # the schedule touches the noise alone
     assert np.all(np.exp(narrow_log_std) <= 0.2 * math.sqrt(VARIANCE_BOUNDS[1]) * (1 + 1e-4))
     assert np.all(narrow_log_std < log_std)
@@ -179,3 +182,50 @@ def test_few_and_many_sequences_encode_alike():
     many = encoder(obs, mask)
     few = jnp.concatenate([encoder(obs[:FEW_SEQUENCES], mask[:FEW_SEQUENCES]), encoder(obs[FEW_SEQUENCES:], mask[FEW_SEQUENCES:])])
     np.testing.assert_allclose(few, many, atol=1e-6)
+
+
+def _two_modes(weights):
+    """A two-component mixture per row: means -0.5 and +0.5 on every joint, narrow."""
+    mean = jnp.broadcast_to(jnp.array([[-0.5] * 6, [0.5] * 6]), (4000, 2, 6))
+    return Mixture(mean, jnp.full((4000, 2, 6), math.log(0.01)), jnp.broadcast_to(jnp.log(jnp.array(weights)), (4000, 2)))
+
+
+def test_a_mixture_samples_its_components_by_weight_and_acts_with_the_heaviest():
+    actor = Actor(nnx.Rngs(0), InputFeatures(), NUM_JOINTS, components=2)
+    dist = _two_modes([0.2, 0.8])
+    action, log_prob = actor.sample(dist, jax.random.key(1))
+    upper = np.asarray(action[:, 0] > 0)
+    assert abs(upper.mean() - 0.8) < 0.03  # 4,000 draws: 3 standard deviations is 0.019
+    assert np.all(np.abs(np.asarray(action) - np.where(upper[:, None], 0.5, -0.5)) < 0.06)
+    np.testing.assert_array_equal(actor.mode(dist), np.full((4000, 6), 0.5))
+    np.testing.assert_array_equal(actor.mode(_two_modes([0.7, 0.3])), np.full((4000, 6), -0.5))
+    # the density: a direct sum over the two components
+    x = np.asarray(action, np.float64)
+    gauss = [np.exp(-0.5 * (((x - m) / 0.01) ** 2).sum(-1)) / (0.01 * math.sqrt(2 * math.pi)) ** 6 for m in (-0.5, 0.5)]
+    np.testing.assert_allclose(log_prob, np.log(0.2 * gauss[0] + 0.8 * gauss[1]), rtol=1e-5, atol=1e-3)
+
+
+def test_component_samples_are_reparameterized_and_scored_by_the_whole_mixture():
+    actor = Actor(nnx.Rngs(0), InputFeatures(), NUM_JOINTS, components=3)
+    obs, mask = _sequences(jax.random.key(3), 5, 3, 2)
+    dist = actor.distribution(obs, mask)
+    assert dist.mean.shape == dist.log_std.shape == (5, 3, 6) and dist.log_weights.shape == (5, 3)
+    np.testing.assert_allclose(jnp.exp(dist.log_weights).sum(-1), 1.0, rtol=1e-6)
+    actions, log_probs = actor.component_samples(dist, jax.random.key(4))
+    noise = jax.random.normal(jax.random.key(4), (5, 3, 6))
+    np.testing.assert_allclose(actions, dist.mean + jnp.exp(dist.log_std) * noise, rtol=1e-6)
+    for k in range(3):
+        np.testing.assert_allclose(log_probs[:, k], actor.log_prob(obs, mask, actions[:, k]), rtol=1e-5, atol=1e-4)
+
+
+def test_a_widened_actor_is_the_same_policy():
+    """An equal mixture of copies of a Gaussian is that Gaussian: the same deterministic
+    action and the same density everywhere."""
+    actor = Actor(nnx.Rngs(0), InputFeatures(goal=True), NUM_JOINTS)
+    wide = widened(actor, 4)
+    assert wide.components == 4
+    obs, mask = _sequences(jax.random.key(3), 6, 4, 3)
+    np.testing.assert_allclose(wide(obs, mask)[0], actor(obs, mask)[0], atol=1e-6)
+    action, log_prob = actor(obs, mask, jax.random.key(5))
+    np.testing.assert_allclose(wide.log_prob(obs, mask, action), log_prob, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(jnp.exp(wide.distribution(obs, mask).log_weights), 0.25)

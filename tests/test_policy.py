@@ -54,6 +54,24 @@ def test_round_trip_of_actors_with_input_features(tmp_path, inputs):
         load_policy(tmp_path / "mislabelled.npz")
 
 
+def test_round_trip_of_a_mixture_actor(tmp_path):
+    """A mixture actor's file says how many components it has; a file that says otherwise
+    is refused; files without the entry hold one Gaussian."""
+    original = Actor(nnx.Rngs(5), InputFeatures(goal=True), NUM_JOINTS, components=3)
+    save_policy(tmp_path / "mixture.npz", nnx.state(original), False, {}, inputs=InputFeatures(goal=True), components=3)
+    loaded = load_policy(tmp_path / "mixture.npz")
+    assert loaded.components == loaded.meta["components"] == 3
+    obs = np.random.default_rng(1).normal(size=(4, 2, 107)).astype(np.float32)
+    mask = np.ones((4, 2), bool)
+    np.testing.assert_array_equal(np.asarray(loaded.actor(obs, mask)[0]), np.asarray(original(obs, mask)[0]))
+    save_policy(tmp_path / "mislabelled.npz", nnx.state(original), False, {}, inputs=InputFeatures(goal=True))
+    with pytest.raises(ValueError, match=r"head/layers/2/bias has shape \[36\], this actor expects \[12\]"):
+        load_policy(tmp_path / "mislabelled.npz")
+    save_policy(tmp_path / "zero.npz", nnx.state(original), False, {}, inputs=InputFeatures(goal=True), components=0)
+    with pytest.raises(ValueError, match="mixture components 0, expected an integer >= 1"):
+        load_policy(tmp_path / "zero.npz")
+
+
 def test_bad_policy_files_fail_clearly(policy_path, tmp_path):
     with pytest.raises(FileNotFoundError, match="no such policy file"):
         load_policy(tmp_path / "missing.npz")

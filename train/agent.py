@@ -8,7 +8,10 @@ bounded-variance Gaussian without tanh squashing; ``squash=True, learn_alpha=Tru
 standard SAC (tanh-squashed samples, temperature tuned to a target entropy of -6).
 ``expert_bc > 0`` adds a Q-filtered behaviour-cloning term on the buffer's expert
 transitions to the actor loss (:func:`expert_bc_loss`; ``expert_bc_filter=False`` drops the
-filter). ``bc_start`` = N > 0 gives a
+filter). ``components`` = K > 1 makes the actor a mixture of K Gaussians: its loss is the
+exact expectation over the components (one reparameterized sample of each, weighted by the
+mixture weights), and cloning an action is winner-takes-all (:func:`cloning_error`).
+``bc_start`` = N > 0 gives a
 behaviour-cloned start: for the first N updates the actor step regresses the mean action
 onto the batch's expert actions (the critics learn as usual meanwhile, so SAC takes over
 from a cloned actor with a critic of it). ``actor_freeze`` = N > 0 leaves the actor and its
@@ -31,8 +34,13 @@ from flax import nnx, struct
 from mjx_multiarm.env.observation import InputFeatures
 from mjx_multiarm.geometry.robot import NUM_JOINTS
 from mjx_multiarm.options import option
-from models.networks import Actor, TwinCritic
+from models.networks import Actor, Mixture, TwinCritic
 from train.replay import Transitions
+
+
+#: Share of a mixture's cloning error carried by the components that are not the nearest
+#: to the target action (relaxed winner-takes-all, :func:`cloning_error`).
+LOSER_SHARE = 0.1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,6 +69,8 @@ class SACConfig:
                               "learn meanwhile), then SAC takes over (0: none)")
     actor_freeze: int = option(0, "the first N updates leave the actor as it is while the critics learn (the critic warm-up "
                                   "of a fine-tune, --init; 0: none)")
+    components: int = option(1, "mixture components of the actor's action distribution (1: the original's Gaussian; a "
+                                "one-component --init policy is widened into an equal mixture of copies of itself)")
 
     def __post_init__(self):
         for name in ("actor_lr", "critic_lr", "alpha", "alpha_lr", "bc_lr"):
@@ -77,6 +87,8 @@ class SACConfig:
         for name in ("bc_start", "actor_freeze"):
             if getattr(self, name) < 0:
                 raise ValueError(f"SACConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.components < 1:
+            raise ValueError(f"SACConfig.components must be >= 1, got {self.components}")
 
 
 @struct.dataclass
@@ -115,7 +127,7 @@ def _optimizers(config: SACConfig):
 def create_agent(key, config: SACConfig = SACConfig()) -> Agent:
     """Freshly initialized networks (weights as the original) and optimizers."""
     actor_key, critic_key = jax.random.split(key)
-    actor_def, actor = nnx.split(Actor(nnx.Rngs(actor_key), config.inputs, NUM_JOINTS, squash=config.squash))
+    actor_def, actor = nnx.split(Actor(nnx.Rngs(actor_key), config.inputs, NUM_JOINTS, config.squash, config.components))
     critic_def, critic = nnx.split(TwinCritic(nnx.Rngs(critic_key), config.inputs, NUM_JOINTS))
     actor_opt, critic_opt, alpha_opt = _optimizers(config)
     log_alpha = jnp.asarray(math.log(config.alpha), jnp.float32)
@@ -152,17 +164,31 @@ def critic_loss(agent: Agent, critic: nnx.State, batch: Transitions, target) -> 
     return jnp.mean((q1 - target) ** 2) + jnp.mean((q2 - target) ** 2), (q1, q2, encodings)
 
 
-def expert_bc_loss(action, batch: Transitions, q_data, q_policy, filtered: bool = True) -> tuple[jnp.ndarray, jnp.ndarray]:
+def cloning_error(actor: Actor, dist: Mixture, target) -> jnp.ndarray:
+    """How far the policy ``dist`` is from the actions ``target`` [N, 6], per row [N].
+
+    One Gaussian: the squared error of its mean. A mixture: relaxed winner-takes-all, the
+    squared error of the nearest component's mean (and :data:`LOSER_SHARE` of the other
+    components', so that none drifts off unanchored) plus the cross-entropy of the weights
+    against the nearest component, so the heaviest component, whose mean is the
+    deterministic action, learns to be the one that imitates (a multimodal target is not
+    averaged)."""
+    errors = jnp.sum((actor.component_modes(dist) - target[..., None, :]) ** 2, axis=-1)  # [N, K]
+    nearest = jax.nn.one_hot(jnp.argmin(errors, axis=-1), errors.shape[-1], dtype=errors.dtype)
+    share = nearest if errors.shape[-1] == 1 else (1 - LOSER_SHARE) * nearest + LOSER_SHARE * (1 - nearest) / (errors.shape[-1] - 1)
+    return jnp.sum(share * errors - nearest * dist.log_weights, axis=-1)
+
+
+def expert_bc_loss(error, batch: Transitions, q_data, q_policy, filtered: bool = True) -> tuple[jnp.ndarray, jnp.ndarray]:
     """(behaviour-cloning loss, fraction of the batch it applies to), Q-filtered as Nair et
     al. 2018 ("Overcoming exploration in RL with demonstrations").
 
-    The squared error between the policy's deterministic ``action`` [N, 6] and the stored
-    action counts on the batch's expert transitions where the critic values the expert's
-    action above the policy's (``q_data`` > ``q_policy``, both [N]), so the policy imitates
-    the expert only where the expert is still the better choice; ``filtered=False``: on
-    every expert transition."""
+    The policy's :func:`cloning_error` ``error`` [N] against the stored actions counts on
+    the batch's expert transitions where the critic values the expert's action above the
+    policy's (``q_data`` > ``q_policy``, both [N]), so the policy imitates the expert only
+    where the expert is still the better choice; ``filtered=False``: on every expert
+    transition."""
     applies = batch.expert & (q_data > q_policy) if filtered else batch.expert
-    error = jnp.sum((action - batch.action) ** 2, axis=-1)
     return jnp.sum(jnp.where(applies, error, 0.0)) / jnp.maximum(applies.sum(), 1), jnp.mean(applies)
 
 
@@ -179,16 +205,20 @@ def sac_update(agent: Agent, batch: Transitions, key, config: SACConfig = SACCon
 
     def actor_loss(params):
         actor = nnx.merge(agent.actor_def, params)
-        mean, log_std = actor.distribution(batch.obs, batch.mask, std_scale)
-        action, log_prob = actor.sample(mean, log_std, actor_key)
-        q = jnp.minimum(*agent.critics().values(encodings, action))
+        dist = actor.distribution(batch.obs, batch.mask, std_scale)
+        actions, log_probs = actor.component_samples(dist, actor_key)  # [N, K, 6], [N, K]
+        per_action = tuple(jnp.broadcast_to(e[..., None, :], actions.shape[:-1] + e.shape[-1:]) for e in encodings)
+        weights = jnp.exp(dist.log_weights)  # the expectation over components, exact
+        q = jnp.sum(weights * jnp.minimum(*agent.critics().values(per_action, actions)), axis=-1)
+        log_prob = jnp.sum(weights * log_probs, axis=-1)
         loss = jnp.mean(alpha * log_prob - q)
         bc, bc_share = jnp.zeros(()), jnp.zeros(())
+        if config.expert_bc or config.bc_start:
+            error = cloning_error(actor, dist, batch.action)
         if config.expert_bc:
-            bc, bc_share = expert_bc_loss(actor.sample(mean, log_std)[0], batch, jnp.minimum(q1, q2), q, config.expert_bc_filter)
+            bc, bc_share = expert_bc_loss(error, batch, jnp.minimum(q1, q2), q, config.expert_bc_filter)
         loss = loss + config.expert_bc * bc
         if config.bc_start:  # behaviour-cloned start: imitate the batch's expert rows
-            error = jnp.sum((actor.sample(mean, log_std)[0] - batch.action) ** 2, axis=-1)
             cloning = jnp.sum(jnp.where(batch.expert, error, 0.0)) / jnp.maximum(batch.expert.sum(), 1)
             loss = jnp.where(agent.updates < config.bc_start, cloning, loss)
         return loss, (log_prob, bc, bc_share)
@@ -218,11 +248,12 @@ def sac_update(agent: Agent, batch: Transitions, key, config: SACConfig = SACCon
 
 
 def bc_update(agent: Agent, batch: Transitions, config: SACConfig = SACConfig()) -> tuple[Agent, dict]:
-    """Behaviour cloning (the paper's ablation): regress the actor's mean onto the actions."""
+    """Behaviour cloning (the paper's ablation): regress the actor's mean onto the actions
+    (:func:`cloning_error`)."""
 
     def loss(params):
-        mean, _ = nnx.merge(agent.actor_def, params)(batch.obs, batch.mask)
-        return jnp.mean(jnp.sum((mean - batch.action) ** 2, axis=-1))
+        actor = nnx.merge(agent.actor_def, params)
+        return jnp.mean(cloning_error(actor, actor.distribution(batch.obs, batch.mask), batch.action))
 
     value, grads = jax.value_and_grad(loss)(agent.actor)
     optimizer = optax.adam(config.bc_lr)

@@ -61,14 +61,25 @@ def lineage(provenance: dict) -> list[dict]:
 
 
 def _architecture(policy: LoadedPolicy) -> dict:
-    """The configuration leaves the policy file fixes: the actor's squash and input features."""
-    return {"train.sac.squash": policy.squash,
+    """The configuration leaves the policy file fixes: the actor's squash, input features and
+    mixture components."""
+    return {"train.sac.squash": policy.squash, "train.sac.components": policy.components,
             **{f"train.sac.inputs.{k}": v for k, v in dataclasses.asdict(policy.inputs).items()}}
 
 
+def widens(config, policy: LoadedPolicy) -> bool:
+    """Whether ``config`` fine-tunes the one-component ``policy`` as a mixture
+    (:func:`models.networks.widened`)."""
+    return policy.components == 1 and config.train.sac.components > 1
+
+
 def check_architecture(config, policy: LoadedPolicy, path) -> None:
-    """Raise ValueError if ``config``'s networks are not those of the policy file ``path``."""
-    wrong = {k: v for k, v in _architecture(policy).items() if value_at(config, k) != v}
+    """Raise ValueError if ``config``'s networks are not those of the policy file ``path``
+    (a mixture of a one-component policy's copies is allowed: :func:`widens`)."""
+    fixed = _architecture(policy)
+    if widens(config, policy):
+        del fixed["train.sac.components"]
+    wrong = {k: v for k, v in fixed.items() if value_at(config, k) != v}
     if wrong:
         names = {leaf.path: leaf.name for leaf in leaves(type(config))}
         flags = ", ".join(f"--{names[k].replace('_', '-')} {int(v) if isinstance(v, bool) else v}" for k, v in wrong.items())

@@ -46,12 +46,13 @@ from mjx_multiarm.files import atomic_write
 from mjx_multiarm.options import from_dict, leaves, to_dict, value_at
 from mjx_multiarm.planner.policy import policy_env_settings
 from mjx_multiarm.planner.policy_file import LoadedPolicy, load_policy, save_policy
+from models.networks import widened
 from train.agent import agent_from_parameters
 from train.checkpoint import Checkpoints
 from train.config import RunConfig
 from train.data import prepare
 from train.evaluation import evaluate_policy, policy_evaluator
-from train.finetune import check_architecture, load_parent, parent_record
+from train.finetune import check_architecture, load_parent, parent_record, widens
 from train.plots import plot_learning_curve
 from train.relabel import CollisionRelabeller
 from train.trainer import Trainer
@@ -254,10 +255,12 @@ def train(config: RunConfig, run_dir: str | os.PathLike, *, resume: bool = False
         if policy.env != policy_env_settings(data.env):
             raise ValueError(f"--init {config.init}: the policy was trained for environment settings {policy.env}, this run's "
                              f"are {policy_env_settings(data.env)}")
-        agent = agent_from_parameters(jax.random.key(config.seed), config.train.sac, nnx.state(policy.actor), policy.critic)
+        actor = widened(policy.actor, config.train.sac.components) if widens(config, policy) else policy.actor
+        agent = agent_from_parameters(jax.random.key(config.seed), config.train.sac, nnx.state(actor), policy.critic)
         state = trainer.place(state.replace(agent=agent))
         log(f"fine-tuning {parent['path']} ({parent['total_env_steps']:,} env steps in its chain; "
-            f"{'actor and critics' if policy.critic is not None else 'actor only, fresh critics'}, curriculum level "
+            f"{'actor and critics' if policy.critic is not None else 'actor only, fresh critics'}, "
+            f"{f'widened into {actor.components} mixture components, ' if widens(config, policy) else ''}curriculum level "
             f"{config.train.start_level + 1}, actor frozen for {config.train.sac.actor_freeze} updates)")
     log(f"device memory: task bank {_megabytes(data.bank)} ({data.bank.size} tasks), demonstrations {_megabytes(data.demos)}, "
         f"replay buffer {_megabytes(state.buffer)}, expert buffer {_megabytes(state.expert_buffer)}, "
@@ -294,7 +297,7 @@ def train(config: RunConfig, run_dir: str | os.PathLike, *, resume: bool = False
         checkpoints.save(iteration, state, meta)
         save_policy(run_dir / "policy.npz", state.agent.average_actor, config.train.sac.squash, policy_env_settings(data.env),
                     {"run_dir": str(run_dir), "config": to_dict(config), **meta, "parent": parent},
-                    inputs=config.train.sac.inputs, critic=state.agent.critic)
+                    inputs=config.train.sac.inputs, critic=state.agent.critic, components=config.train.sac.components)
         _write_metrics(metrics_file, rows)
 
     relabeller = CollisionRelabeller(trainer, config.seed) if config.train.relabel else None

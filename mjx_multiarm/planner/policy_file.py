@@ -2,7 +2,8 @@
 
 A policy file is a NumPy ``.npz`` archive holding the actor's parameters (one array per
 parameter path, e.g. ``encoder/cell/ii/kernel``) and a ``__meta__`` entry: JSON with the
-format version, the architecture (``squash``, the ``inputs`` features, every parameter's shape), the environment
+format version, the architecture (``squash``, the ``inputs`` features, the mixture ``components``, every parameter's
+shape), the environment
 settings the policy was trained for (action scale, neighbour radius, ...), free-form
 training provenance, and a SHA-256 over the parameters. Loading checks all of it, so a
 truncated or altered file, or one of another architecture, fails with a message that
@@ -54,9 +55,14 @@ def _digest(arrays: dict[str, np.ndarray]) -> str:
     return sha.hexdigest()
 
 
-def _architecture(squash: bool, inputs: InputFeatures) -> dict[str, list[int]]:
-    """Parameter shapes of a freshly built actor (no weights materialized)."""
-    abstract = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), inputs, NUM_JOINTS, squash=squash))
+def _abstract_actor(squash: bool, inputs: InputFeatures, components: int) -> Actor:
+    """An actor of this architecture, no weights materialized."""
+    return nnx.eval_shape(lambda: Actor(nnx.Rngs(0), inputs, NUM_JOINTS, squash, components))
+
+
+def _architecture(squash: bool, inputs: InputFeatures, components: int) -> dict[str, list[int]]:
+    """Parameter shapes of a freshly built actor."""
+    abstract = _abstract_actor(squash, inputs, components)
     return {_name(path): list(value.shape) for path, value in nnx.to_flat_state(nnx.state(abstract, nnx.Param))}
 
 
@@ -67,16 +73,17 @@ def _critic_architecture(inputs: InputFeatures) -> dict[str, list[int]]:
 
 
 def save_policy(path: str | os.PathLike, actor: nnx.State, squash: bool, env_settings: dict, provenance: dict | None = None,
-                inputs: InputFeatures = InputFeatures(), critic: nnx.State | None = None) -> None:
+                inputs: InputFeatures = InputFeatures(), critic: nnx.State | None = None, components: int = 1) -> None:
     """Write ``actor``'s parameters (an ``nnx.State`` of :class:`~models.networks.Actor`,
-    built with ``squash`` and ``inputs``) to ``path`` atomically. ``env_settings``
+    built with ``squash``, ``inputs`` and ``components``) to ``path`` atomically. ``env_settings``
     records what the policy expects of the environment (``action_scale`` [6],
     ``neighbour_radius``, ``max_step`` [6]). ``critic``: the twin critics' parameters
     (:class:`~models.networks.TwinCritic`), stored for fine-tuning."""
     arrays = _flat(jax.device_get(actor))
     if critic is not None:
         arrays |= {_CRITIC + name: value for name, value in _flat(jax.device_get(critic)).items()}
-    meta = {"format": FORMAT, "version": VERSION, "squash": bool(squash), "inputs": dataclasses.asdict(inputs), "shapes": {k: list(v.shape) for k, v in arrays.items()},
+    meta = {"format": FORMAT, "version": VERSION, "squash": bool(squash), "inputs": dataclasses.asdict(inputs),
+            "components": int(components), "shapes": {k: list(v.shape) for k, v in arrays.items()},
             "sha256": _digest(arrays), "env": env_settings, "provenance": provenance or {}}
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -89,13 +96,13 @@ def save_policy(path: str | os.PathLike, actor: nnx.State, squash: bool, env_set
 
 
 class LoadedPolicy:
-    """A policy file's actor module (``actor``), its ``squash`` flag, input features,
-    metadata, and the twin critics' parameters where the file carries them (``critic``,
+    """A policy file's actor module (``actor``), its ``squash`` flag, input features, mixture
+    ``components``, metadata, and the twin critics' parameters where the file carries them (``critic``,
     an ``nnx.State`` of :class:`~models.networks.TwinCritic`, else None)."""
 
     def __init__(self, actor: Actor, meta: dict, inputs: InputFeatures = InputFeatures(), critic: nnx.State | None = None):
         self.actor, self.meta, self.inputs, self.critic = actor, meta, inputs, critic
-        self.squash = bool(meta["squash"])
+        self.squash, self.components = bool(meta["squash"]), actor.components
 
     @property
     def env(self) -> dict:
@@ -135,7 +142,10 @@ def load_policy(path: str | os.PathLike) -> LoadedPolicy:
         inputs = InputFeatures(**meta["inputs"]) if "inputs" in meta else InputFeatures(rotations=bool(meta.get("rotations", False)))
     except TypeError as error:
         raise ValueError(f"{path}: unknown input features {meta['inputs']} ({error})") from error
-    expected = _architecture(bool(meta["squash"]), inputs)
+    components = meta.get("components", 1)  # files before mixtures hold one Gaussian
+    if not isinstance(components, int) or components < 1:
+        raise ValueError(f"{path}: mixture components {components!r}, expected an integer >= 1")
+    expected = _architecture(bool(meta["squash"]), inputs, components)
     has_critic = any(name.startswith(_CRITIC) for name in contents)
     if has_critic:
         expected |= _critic_architecture(inputs)
@@ -148,8 +158,7 @@ def load_policy(path: str | os.PathLike) -> LoadedPolicy:
     unexpected = sorted(set(contents) - set(expected))
     if unexpected:
         raise ValueError(f"{path}: unexpected parameters {unexpected[:3]}: the file holds another architecture")
-    actor = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), inputs, NUM_JOINTS, squash=bool(meta["squash"])))
-    graphdef, state = nnx.split(actor)
+    graphdef, state = nnx.split(_abstract_actor(bool(meta["squash"]), inputs, components))
     critic = None
     if has_critic:
         _, critic_state = nnx.split(nnx.eval_shape(lambda: TwinCritic(nnx.Rngs(0), inputs, NUM_JOINTS)))
