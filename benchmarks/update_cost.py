@@ -3,7 +3,8 @@
 Updates: ``--updates`` jitted SAC (or behaviour-cloning) updates in one ``lax.scan`` on a
 fixed random batch of ``--batch`` observation sequences of 1, 2, 4, 10 elements (every
 element observed), compile excluded; prints ms per update and the losses of the first
-update on that batch (the same numbers before and after a change that keeps the math).
+update on that batch (the same numbers before and after a change that keeps the math), for
+actors of each ``--components`` entry (mixture components; 1: the original's Gaussian).
 
 Iterations: :class:`train.trainer.Trainer` iterations of a preset's environment and
 training settings (``--preset``, default ``cpu``: 64 environments x 16 steps, 16 updates of
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import time
 
@@ -50,9 +52,9 @@ def fixed_batch(size: int, elements: int, seed: int = 0) -> Transitions:
                        jnp.arange(size) % 3 == 0)
 
 
-def time_updates(kind: str, batch: Transitions, updates: int, repeats: int = 3) -> tuple[float, dict]:
+def time_updates(kind: str, batch: Transitions, updates: int, repeats: int = 3, components: int = 1) -> tuple[float, dict]:
     """(median ms per update, metrics of the first update) of ``updates`` scanned updates."""
-    config = SACConfig(expert_bc=1.0, policy_average=5e-4)
+    config = SACConfig(expert_bc=1.0, policy_average=5e-4, components=components)
     agent = create_agent(jax.random.key(1), config)
 
     def one(agent, key):
@@ -92,6 +94,7 @@ def main() -> None:
     parser.add_argument("--elements", default="1,2,4,10", help="observed arms per sequence, e.g. 1,2,4,10 ('' to skip)")
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--updates", type=int, default=20, help="updates per timed call")
+    parser.add_argument("--components", default="1", help="comma-separated mixture components of the actor, e.g. 1,2,3")
     parser.add_argument("--teams", default="1,2,4,1-4", help="comma-separated team-size entries of iteration benchmarks, e.g. 1,2,4,1-4 ('' to skip)")
     parser.add_argument("--iterations", type=int, default=10, help="timed training iterations per entry")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="cpu", help="settings of the iteration benchmarks")
@@ -100,12 +103,14 @@ def main() -> None:
     print(f"device: {jax.devices()[0].device_kind} ({cpu_name()})")
     for elements in [int(e) for e in args.elements.split(",") if e]:
         batch = fixed_batch(args.batch, elements)
-        for kind in ("sac", "bc"):
-            ms, losses = time_updates(kind, batch, args.updates)
+        for components, kind in itertools.product((int(k) for k in args.components.split(",")), ("sac", "bc")):
+            ms, losses = time_updates(kind, batch, args.updates, components=components)
             shown = ", ".join(f"{k} {v:.6g}" for k, v in losses.items() if k in ("critic_loss", "actor_loss", "bc_loss"))
-            print(f"{kind:>3} update, {elements:>2} elements, batch {args.batch}: {ms:7.2f} ms ({1e3 / ms:6.1f} updates/s); first: {shown}")
+            print(f"{kind:>3} update, {components} component(s), {elements:>2} elements, batch {args.batch}: {ms:7.2f} ms "
+                  f"({1e3 / ms:6.1f} updates/s); first: {shown}")
             if args.json:
-                print(json.dumps({"kind": kind, "elements": elements, "batch": args.batch, "ms_per_update": ms, "first_update": losses}))
+                print(json.dumps({"kind": kind, "components": components, "elements": elements, "batch": args.batch,
+                                  "ms_per_update": ms, "first_update": losses}))
     for entry in [t for t in args.teams.split(",") if t]:
         rates = time_iterations(parse_arms(entry), args.iterations, args.preset)
         print(f"training iterations ({args.preset}), {entry} arm tasks: {rates['env_steps_per_s']:,.0f} env steps/s, "
