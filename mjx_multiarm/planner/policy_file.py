@@ -2,10 +2,10 @@
 
 A policy file is a NumPy ``.npz`` archive holding the actor's parameters (one array per
 parameter path, e.g. ``encoder/cell/ii/kernel``) and a ``__meta__`` entry: JSON with the
-format version, the architecture (``squash``, the ``inputs`` features, the mixture ``components``, every parameter's
-shape), the environment
-settings the policy was trained for (action scale, neighbour radius, ...), free-form
-training provenance, and a SHA-256 over the parameters. Loading checks all of it, so a
+format version, the architecture (``squash``, the ``inputs`` features, the mixture
+``components`` (absent in files before mixtures: one), every parameter's shape), the
+environment settings the policy was trained for (action scale, neighbour radius, ...),
+free-form training provenance, and a SHA-256 over the parameters. Loading checks all of it, so a
 truncated or altered file, or one of another architecture, fails with a message that
 says what is wrong instead of producing a silently broken planner.
 
