@@ -209,12 +209,17 @@ class Actor(nnx.Module):
         return self._log_density(action, self.distribution(obs, mask))
 
 
-def widened(actor: Actor, components: int) -> Actor:
-    """``actor`` (one component) as an equal mixture of ``components`` copies of its Gaussian:
-    the same policy (density, samples' distribution, deterministic action), whose copies
-    the gradient then pulls apart. The start of a mixture fine-tune of a trained actor."""
+def widened(actor: Actor, components: int, first_weight: float | None = None) -> Actor:
+    """``actor`` (one component) as a mixture of ``components`` copies of its Gaussian, with
+    equal weights, or ``first_weight`` on the first copy and the rest shared equally: the
+    same policy either way (density, samples' distribution, deterministic action), whose
+    copies the gradient then pulls apart. The start of a mixture fine-tune of a trained actor."""
     if actor.components != 1:
         raise ValueError(f"only a one-component actor can be widened, this one has {actor.components}")
+    if first_weight is not None and not 0 < first_weight < 1:
+        raise ValueError(f"the first copy's weight must be in (0, 1), got {first_weight}")
+    rest = (1 - first_weight) / (components - 1) if first_weight is not None else 1.0
+    logits_bias = jnp.log(jnp.array([first_weight or 1.0] + [rest] * (components - 1)))
     wide = nnx.eval_shape(lambda: Actor(nnx.Rngs(0), actor.encoder.inputs, actor.actions, actor.squash, components))
     graphdef, state = nnx.split(wide)
     params = dict(nnx.to_flat_state(nnx.state(actor, nnx.Param)))
@@ -223,8 +228,8 @@ def widened(actor: Actor, components: int) -> Actor:
     def value(path, abstract):
         if path[:3] == last:  # the mean and variance outputs, once per component
             return jnp.tile(params[path][...], (1,) * (abstract.ndim - 1) + (components,))
-        if path[0] == "logits":  # equal weights
-            return jnp.zeros(abstract.shape, abstract.dtype)
+        if path[0] == "logits":  # the weights from the bias alone
+            return logits_bias.astype(abstract.dtype) if path[-1] == "bias" else jnp.zeros(abstract.shape, abstract.dtype)
         return params[path][...]
 
     flat = [(path, nnx.Param(value(path, abstract))) for path, abstract in nnx.to_flat_state(state)]

@@ -229,3 +229,8 @@ def test_a_widened_actor_is_the_same_policy():
     action, log_prob = actor(obs, mask, jax.random.key(5))
     np.testing.assert_allclose(wide.log_prob(obs, mask, action), log_prob, rtol=1e-5, atol=1e-4)
     np.testing.assert_allclose(jnp.exp(wide.distribution(obs, mask).log_weights), 0.25)
+    led = widened(actor, 3, first_weight=0.9)  # a dominant first copy: still the same policy
+    np.testing.assert_allclose(jnp.exp(led.distribution(obs, mask).log_weights), np.broadcast_to([0.9, 0.05, 0.05], (6, 3)),
+                               rtol=1e-6)
+    np.testing.assert_allclose(led(obs, mask)[0], actor(obs, mask)[0], atol=1e-6)
+    np.testing.assert_allclose(led.log_prob(obs, mask, action), log_prob, rtol=1e-5, atol=1e-4)

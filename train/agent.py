@@ -70,7 +70,9 @@ class SACConfig:
     actor_freeze: int = option(0, "the first N updates leave the actor as it is while the critics learn (the critic warm-up "
                                   "of a fine-tune, --init; 0: none)")
     components: int = option(1, "mixture components of the actor's action distribution (1: the original's Gaussian; a "
-                                "one-component --init policy is widened into an equal mixture of copies of itself)")
+                                "one-component --init policy is widened into a mixture of copies of itself)")
+    widen_weight: float = option(0.0, "the weight of the first copy when --init widens a one-component policy into "
+                                      "--components copies (0: equal weights)")
 
     def __post_init__(self):
         for name in ("actor_lr", "critic_lr", "alpha", "alpha_lr", "bc_lr"):
@@ -89,6 +91,8 @@ class SACConfig:
                 raise ValueError(f"SACConfig.{name} must be >= 0, got {getattr(self, name)}")
         if self.components < 1:
             raise ValueError(f"SACConfig.components must be >= 1, got {self.components}")
+        if not 0 <= self.widen_weight < 1:
+            raise ValueError(f"SACConfig.widen_weight must be in [0, 1), got {self.widen_weight}")
 
 
 @struct.dataclass

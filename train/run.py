@@ -255,7 +255,8 @@ def train(config: RunConfig, run_dir: str | os.PathLike, *, resume: bool = False
         if policy.env != policy_env_settings(data.env):
             raise ValueError(f"--init {config.init}: the policy was trained for environment settings {policy.env}, this run's "
                              f"are {policy_env_settings(data.env)}")
-        actor = widened(policy.actor, config.train.sac.components) if widens(config, policy) else policy.actor
+        actor = (widened(policy.actor, config.train.sac.components, config.train.sac.widen_weight or None) if widens(config, policy)
+                 else policy.actor)
         agent = agent_from_parameters(jax.random.key(config.seed), config.train.sac, nnx.state(actor), policy.critic)
         state = trainer.place(state.replace(agent=agent))
         log(f"fine-tuning {parent['path']} ({parent['total_env_steps']:,} env steps in its chain; "
