@@ -14,9 +14,11 @@ time), copies its policy to ``benchmarks/chain/best.npz``. Every part is also co
 ``benchmarks/chain/head.npz``, the policy the next part starts from (``python -m train.sac
 --init benchmarks/chain/head.npz``): it carries its trained critics, so a part that is not
 better than the best is continued rather than thrown away with the training it holds. Test
-sets are never used here.
-``plot`` draws validation success per team size against the chain's env steps and hours
-(``benchmarks/chain_curve.png``).
+sets are never used here. The chain's root, the policy shipped before the chain ended (its
+best part is shipped now, ``mjx_multiarm/assets/policy.npz``), is kept as
+``benchmarks/chain/root.npz``: the figures measured with it name it.
+``plot`` draws validation success per team size after each part against the env steps and
+hours the chain has spent (``benchmarks/chain_curve.png``).
 """
 
 from __future__ import annotations
@@ -112,23 +114,39 @@ def record(run_dir: pathlib.Path, data: pathlib.Path, note: str) -> None:
         print(f"  {name}: {cells}")
 
 
+#: The paper's static success at 1-4 arms (its policy, Table 1), drawn beside the paper's bins.
+PAPER = {"1": 0.988, "2": 0.943, "3": 0.960, "4": 0.951}
+
+
 def plot(out: pathlib.Path) -> None:
+    """Validation success per team size after each part, against what the chain has spent
+    (env steps and training hours of every part so far, in the order they ran: parts that
+    restart from the best part count too); kept parts are filled, the paper's figures dotted."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import numpy as np
 
     table = json.loads(TABLE.read_text())
+    spent = {"env steps spent by the chain": np.cumsum([row["env_steps"] for row in table]),
+             "training hours spent by the chain (2-core CPU)": np.cumsum([row["train_hours"] for row in table])}
+    kept = np.array([row["kept"] for row in table])
     figure, axes = plt.subplots(len(VALIDATION), 2, figsize=(11, 4 * len(VALIDATION)), squeeze=False)
     for i, name in enumerate(VALIDATION):
-        for j, (key, label) in enumerate((("chain_env_steps", "env steps in the chain"), ("chain_train_hours", "training hours (2-core CPU)"))):
+        for j, (label, x) in enumerate(spent.items()):
             axis = axes[i, j]
             for arms in sorted(table[0]["validation"][name], key=int):
-                axis.plot([row[key] for row in table], [row["validation"][name][arms]["success_rate"] for row in table], "o-",
-                          label=f"{arms} arm{'s' if arms != '1' else ''}")
-            axis.set(xlabel=label, ylabel="success (plain policy)", title=f"{name} (validation)", ylim=(0, 1.02))
+                y = np.array([row["validation"][name][arms]["success_rate"] for row in table])
+                line, = axis.plot(x, y, "-", lw=0.8, alpha=0.6)
+                axis.plot(x[kept], y[kept], "o", color=line.get_color(), label=f"{arms} arm{'s' if arms != '1' else ''}")
+                axis.plot(x[~kept], y[~kept], "o", mfc="none", color=line.get_color())
+                if name == "val2048" and arms in PAPER:
+                    axis.axhline(PAPER[arms], ls=":", lw=1, color=line.get_color())
+            axis.set(xlabel=label, ylabel="success (plain policy)", ylim=(0.4, 1.02),
+                     title=f"{name} (validation; filled: kept parts" + ("; dotted: the paper)" if name == "val2048" else ")"))
             axis.grid(alpha=0.3)
-            axis.legend(fontsize=8)
+            axis.legend(fontsize=8, loc="lower right")
     figure.tight_layout()
     figure.savefig(out, dpi=110)
     print(out)

@@ -29,6 +29,7 @@ from train.finetune import DEFAULT_ACTOR_FREEZE, lineage
 from train.run import TrainingStopped, train
 
 SHIPPED = pathlib.Path(__file__).resolve().parents[1] / "mjx_multiarm" / "assets" / "policy.npz"
+ROOT = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "chain" / "root.npz"  # the chain's root: version 1, actor only
 QUIET = dict(workers=1, log=lambda message: None)
 
 
@@ -41,25 +42,40 @@ def _params(state):
 
 
 def test_init_takes_the_networks_and_curriculum_level_from_the_policy_file():
-    """The shipped (version 1, actor-only) file: its input features, the level it reached,
-    and a critic warm-up, unless the command line says otherwise; a conflicting
+    """The chain's root (a version 1, actor-only file): its input features, the level it
+    reached, and a critic warm-up, unless the command line says otherwise; a conflicting
     architecture or a missing file fails before the run starts."""
-    config = _config(["--init", str(SHIPPED)])  # the cpu preset has no goal features: the file's win
-    recorded = load_policy(SHIPPED).provenance["curriculum_level"]
+    config = _config(["--init", str(ROOT)])  # the cpu preset has no goal features: the file's win
+    recorded = load_policy(ROOT).provenance["curriculum_level"]
     assert config.train.sac.inputs.goal and config.train.start_level == recorded == 21
     assert config.train.sac.actor_freeze == DEFAULT_ACTOR_FREEZE
-    config = _config(["--preset", "team", "--init", str(SHIPPED), "--start-level", "3", "--actor-freeze", "0"])
+    config = _config(["--preset", "team", "--init", str(ROOT), "--start-level", "3", "--actor-freeze", "0"])
     assert (config.train.start_level, config.train.sac.actor_freeze) == (3, 0)
     with pytest.raises(ValueError, match=r"networks differ .*--goal-features 1"):
-        _config(["--init", str(SHIPPED), "--goal-features", "0"])
+        _config(["--init", str(ROOT), "--goal-features", "0"])
     with pytest.raises(FileNotFoundError, match="no such policy file or run directory"):
         _config(["--init", "nowhere.npz"])
+
+
+def test_the_shipped_policy_carries_its_critics_and_its_chain_of_parents():
+    """The shipped policy is a part of the training chain: a small version 2 file with its
+    twin critics (what fine-tuning needs), whose lineage of parents ends at the chain's root
+    (a first training run, without a parent) with the chain's totals."""
+    shipped, root = load_policy(SHIPPED), load_policy(ROOT)
+    assert SHIPPED.stat().st_size <= 8 * 2**20 and shipped.meta["version"] == 2 and shipped.critic is not None
+    assert (root.meta["version"], root.critic, lineage(root.provenance)) == (1, None, [])
+    chain = lineage(shipped.provenance)
+    assert len(chain) >= 2 and chain[-1]["sha256"] == root.meta["sha256"]
+    assert chain[-1]["total_env_steps"] == chain[-1]["env_steps"] == root.provenance["env_steps"]
+    for child, parent in zip(chain, chain[1:]):
+        assert child["total_env_steps"] == child["env_steps"] + parent["total_env_steps"]
 
 
 def test_a_one_component_policy_fine_tunes_as_a_mixture_and_a_mixture_keeps_its_size(tmp_path):
     """--components K widens a one-component parent; a mixture parent fixes K."""
     assert _config(["--init", str(SHIPPED), "--components", "3"]).train.sac.components == 3
     assert _config(["--init", str(SHIPPED)]).train.sac.components == 1
+    assert _config(["--init", str(ROOT), "--components", "2"]).train.sac.components == 2
     mixture = tmp_path / "mixture.npz"
     save_policy(mixture, nnx.state(Actor(nnx.Rngs(0), InputFeatures(goal=True), NUM_JOINTS, components=2)), False, {},
                 inputs=InputFeatures(goal=True), components=2)
