@@ -2,6 +2,7 @@
 
     python benchmarks/chain.py record runs/part1 --data DATA --note "..."   # evaluate a part, keep it if better
     python benchmarks/chain.py plot                                            # the curve across the parts
+    python benchmarks/chain.py table                                           # the parts as a markdown table
     python benchmarks/chain.py evaluate runs/lever/policy.npz --data DATA        # a lever's policy, not recorded
 
 ``record`` evaluates the part's ``policy.npz`` (plain policy, mean actions, 500 steps,
@@ -114,6 +115,25 @@ def record(run_dir: pathlib.Path, data: pathlib.Path, note: str) -> None:
         print(f"  {name}: {cells}")
 
 
+def table() -> str:
+    """The chain's parts as a markdown table: each part's own and the chain's spent env steps
+    and hours, its validation success per team size and pooled, and whether it was kept."""
+    rows = json.loads(TABLE.read_text())
+    header = ("| part | parent | env steps | spent: env steps / hours | "
+              + " | ".join(f"`{name}`: 1 / 2 / 3 / 4 arms" for name in VALIDATION) + " | pooled | kept |")
+    lines = [header, "|" + "---|" * (6 + len(VALIDATION))]
+    parts = {row["sha256"]: row["part"] for row in rows}
+    steps = hours = 0.0
+    for row in rows:
+        steps, hours = steps + row["env_steps"], hours + row["train_hours"]
+        cells = [" / ".join(f"{100 * per_set[arms]['success_rate']:.1f}" for arms in sorted(per_set, key=int))
+                 for per_set in (row["validation"][name] for name in VALIDATION)]
+        parent = parts.get(row.get("parent_sha256"), "-")
+        lines.append(f"| {row['part']} | {parent} | {row['env_steps'] / 1e6:.2f} M | {steps / 1e6:.2f} M / {hours:.2f} h | "
+                     + " | ".join(cells) + f" | {100 * row['pooled_success']:.2f} | {'yes' if row['kept'] else 'no'} |")
+    return "\n".join(lines)
+
+
 #: The paper's static success at 1-4 arms (its policy, Table 1), drawn beside the paper's bins.
 PAPER = {"1": 0.988, "2": 0.943, "3": 0.960, "4": 0.951}
 
@@ -162,6 +182,7 @@ def main(argv=None) -> None:
     scored = commands.add_parser("evaluate", help="print a policy's validation rates (a lever's), without recording it")
     scored.add_argument("policy", type=pathlib.Path)
     scored.add_argument("--data", type=pathlib.Path, required=True, help="folder holding val2048.npz and crowdval2048.npz")
+    commands.add_parser("table", help="the parts as a markdown table")
     drawn = commands.add_parser("plot", help="validation success across the parts")
     drawn.add_argument("--out", type=pathlib.Path, default=ROOT / "benchmarks" / "chain_curve.png")
     args = parser.parse_args(argv)
@@ -171,6 +192,8 @@ def main(argv=None) -> None:
         validation = evaluate(args.policy.absolute(), args.data.absolute())
         print(json.dumps({"policy": str(args.policy), "env_steps": _provenance(args.policy)[1].get("env_steps"),
                           "pooled_success": pooled(validation), "validation": validation}))
+    elif args.command == "table":
+        print(table())
     else:
         plot(args.out)
 
