@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import pathlib
+import re
 
 import jax
 import jax.numpy as jnp
@@ -98,6 +100,53 @@ def test_original_layout_tasks_are_valid_and_deterministic():
     np.testing.assert_array_equal(generate_chunk(spec, 0).base_pos, tasks.base_pos)
     with pytest.raises(ValueError, match="layout"):
         GenerationSpec(count=8, arm_counts=(2,), layout="circle")
+
+
+def test_a_cell_fixes_the_bases_of_every_task(tmp_path, capsys):
+    cell = [[-0.35, 0.0, 1.5708], [0.35, 0.0, -1.5708], [0.0, 0.6, 0.0]]
+    path = tmp_path / "cell.json"
+    path.write_text(json.dumps(cell))
+    cli.main(["generate", "--cell", str(path), "--count", "6", "--seed", "3", "--max-arms", "4", "--out", str(tmp_path / "c.npz"),
+              "--workers", "1", "--quiet"])
+    tasks, meta = load_tasks(tmp_path / "c.npz")
+    assert (tasks.num_arms == 3).all() and tasks.max_arms == 4 and meta["generator"]["cell"] == cell
+    np.testing.assert_allclose(tasks.base_pos[:, :3, :2], np.broadcast_to(np.asarray(cell)[:, :2], (6, 3, 2)))
+    yaw = 2 * np.arctan2(tasks.base_quat[:, :3, 3], tasks.base_quat[:, :3, 0])
+    np.testing.assert_allclose(yaw, np.broadcast_to(np.asarray(cell)[:, 2], (6, 3)), atol=1e-6)
+    np.testing.assert_allclose(tasks.difficulty, task_difficulty(tasks.base_pos, tasks.active), atol=1e-6)
+    assert len(np.unique(tasks.goal_joints.round(6), axis=0)) == 6  # the same cell, new configurations
+    scene = build_scene(4)
+    for joints in (tasks.start_joints, tasks.goal_joints):
+        assert not np.asarray(scene_contacts(scene, tasks.base_pos, tasks.base_quat, jnp.asarray(joints, jnp.float32),
+                                             tasks.active).collided).any()
+
+
+@pytest.mark.parametrize("content, message", [
+    ("not json", "not JSON"),
+    ('{"bases": []}', "a list of \\[x, y, yaw\\]"),
+    ("[[0, 0]]", "a list of \\[x, y, yaw\\]"),
+    ("[[0, 0, 0], [0.2, 0, 0]]", "bases 0 and 1 are 0.200 m apart"),
+])
+def test_a_malformed_cell_file_is_refused_with_a_clear_error(tmp_path, capsys, content, message):
+    path = tmp_path / "cell.json"
+    path.write_text(content)
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["generate", "--cell", str(path), "--count", "4", "--out", str(tmp_path / "c.npz")])
+    assert "--cell" in str(exit_.value) or "bases" in str(exit_.value)
+    assert re.search(message, str(exit_.value)), exit_.value
+
+
+def test_a_cell_takes_its_own_team_size_and_no_layout():
+    cell = ((0.0, 0.0, 0.0), (0.7, 0.0, 0.0))
+    with pytest.raises(ValueError, match="2-arm tasks only"):
+        GenerationSpec(count=4, arm_counts=(1, 2), cell=cell)
+    with pytest.raises(ValueError, match="no layout"):
+        GenerationSpec(count=4, arm_counts=(2,), cell=cell, layout="original")
+    with pytest.raises(ValueError, match="finite"):
+        GenerationSpec(count=4, arm_counts=(2,), cell=((0.0, 0.0, float("nan")), (0.7, 0.0, 0.0)))
+    assert spec_record(GenerationSpec(count=4, arm_counts=(2,), cell=cell))["cell"] == [[0.0, 0.0, 0.0], [0.7, 0.0, 0.0]]
+    line = cli.read_cell(pathlib.Path(__file__).resolve().parents[1] / "benchmarks/cells/line4.json")  # the README's example cell
+    assert len(line) == 4 and {base[1:] for base in line} == {(0.0, np.pi / 2)}
 
 
 @pytest.mark.slow

@@ -2,12 +2,15 @@
 
     python -m mjx_multiarm.tasks generate --arms 1-4 --count 1000 --mode static --seed 0 --out tasks.npz
     python -m mjx_multiarm.tasks generate --preset test --out test.npz
+    python -m mjx_multiarm.tasks generate --cell cell.json --count 20000 --out mine.npz   # a work cell of one's own
     python -m mjx_multiarm.tasks info tasks.npz [--json]
     python -m mjx_multiarm.tasks merge a.npz b.npz --out mix.npz      # e.g. stratified + crowded training tasks
     python -m mjx_multiarm.tasks select mix.npz --per-team 11250 --detour-share 0.5 --out detour.npz
     python -m mjx_multiarm.tasks import-json DIR --out tasks.npz [--json]
     python -m mjx_multiarm.tasks export-json tasks.npz --out DIR
 
+``--cell FILE`` fixes the bases of every task: FILE is JSON, a list of ``[x, y, yaw]`` per
+arm (metres, radians), so the tasks are those of one's own work cell (team size: its arms).
 ``generate`` is resumable: finished chunks are kept in ``OUT.partial/``; re-running the
 same command after an interruption continues where it stopped and writes the same file.
 """
@@ -30,6 +33,7 @@ from mjx_multiarm.tasks.generate import (
     LAYOUTS,
     MODES,
     GenerationSpec,
+    check_cell,
     generate_dataset,
 )
 from mjx_multiarm.tasks.original_json import export_tasks, import_tasks
@@ -86,6 +90,19 @@ def merge_datasets(paths: list[pathlib.Path]) -> tuple[Tasks, dict]:
     return merged, {"merged_from": sources}
 
 
+def read_cell(path: pathlib.Path) -> tuple[tuple[float, float, float], ...]:
+    """The bases of a cell file (JSON: a list of ``[x, y, yaw]`` per arm), checked."""
+    try:
+        bases = json.loads(pathlib.Path(path).read_text())
+    except json.JSONDecodeError as error:
+        raise ValueError(f"--cell {path}: not JSON ({error})") from None
+    if not isinstance(bases, list) or not all(isinstance(b, list) and len(b) == 3 and all(isinstance(v, (int, float)) for v in b) for b in bases):
+        raise ValueError(f"--cell {path}: expected a list of [x, y, yaw] per arm (m, m, rad), got {bases!r}")
+    cell = tuple(tuple(float(v) for v in base) for base in bases)
+    check_cell(cell)
+    return cell
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m mjx_multiarm.tasks", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -99,6 +116,8 @@ def main(argv=None) -> None:
     gen.add_argument("--max-arms", type=int, help="arm slots (default: the largest team)")
     gen.add_argument("--layout", choices=LAYOUTS, help="base placement: stratified over difficulty bins (default) or "
                      "original (the original code's random walk, difficulty up to ~0.99)")
+    gen.add_argument("--cell", type=pathlib.Path, help="JSON file: the fixed bases of every task, a list of [x, y, yaw] "
+                     "(m, m, rad) per arm (one's own work cell)")
     gen.add_argument("--out", type=pathlib.Path, required=True)
     gen.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes (default: all cores)")
     gen.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -133,10 +152,12 @@ def main(argv=None) -> None:
             raise ValueError(f"--out {out} is a directory; give the .npz file to write")
         if args.command == "generate":
             base = DATASETS[args.preset] if args.preset else None
-            if base is None and (args.arms is None or args.count is None):
-                parser.error("generate: give --preset, or --arms and --count")
-            fields = {"arm_counts": args.arms, "count": args.count, "mode": args.mode, "seed": args.seed, "max_arms": args.max_arms,
-                      "layout": args.layout}
+            cell = read_cell(args.cell) if args.cell else None
+            arms = args.arms if args.arms is not None or cell is None else (len(cell),)
+            if base is None and (arms is None or args.count is None):
+                parser.error("generate: give --preset, or --arms (or --cell) and --count")
+            fields = {"arm_counts": arms, "count": args.count, "mode": args.mode, "seed": args.seed, "max_arms": args.max_arms,
+                      "layout": args.layout, "cell": cell}
             overrides = {k: v for k, v in fields.items() if v is not None}
             spec = dataclasses.replace(base, **overrides) if base else GenerationSpec(**overrides)
             progress = None if args.quiet else Progress(spec.count, "tasks")

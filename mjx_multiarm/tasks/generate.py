@@ -5,7 +5,8 @@ For each task of k arms: sample k planar base poses (random yaw, no two bases cl
 evenly (layouts are drawn until the task's difficulty falls in its assigned bin; tasks
 harder than 0.5, beyond the paper's last bin, are rejected); ``layout="original"`` places
 bases as the original code's training tasks were (:func:`sample_bases_original`: a random
-walk, difficulty whatever it comes out, up to ~0.99). Then three collision-free composite configurations,
+walk, difficulty whatever it comes out, up to ~0.99); ``cell`` fixes the bases, the same in
+every task (a work cell of one's own: :func:`cell_bases`). Then three collision-free composite configurations,
 each from batched damped-least-squares IK toward random end-effector positions inside each
 arm's workspace hemisphere, pulled toward the home configuration. Arms whose IK fails,
 leaves the joint limits, or collides are resampled; a task stuck for ``MAX_ROUNDS`` rounds
@@ -78,6 +79,7 @@ class GenerationSpec:
     max_arms: int | None = None
     chunk_size: int = CHUNK_SIZE
     layout: str = "stratified"  # base placement: difficulty bins ("stratified") or as the original code ("original")
+    cell: tuple[tuple[float, float, float], ...] | None = None  # fixed bases (x m, y m, yaw rad), one per arm, in every task
 
     def __post_init__(self):
         if self.count < 1:
@@ -88,6 +90,12 @@ class GenerationSpec:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         if self.layout not in LAYOUTS:
             raise ValueError(f"layout must be one of {LAYOUTS}, got {self.layout!r}")
+        if self.cell is not None:
+            check_cell(self.cell)
+            if self.arm_counts != (len(self.cell),):
+                raise ValueError(f"a cell of {len(self.cell)} arms makes {len(self.cell)}-arm tasks only, got team sizes {self.arm_counts}")
+            if self.layout != "stratified":
+                raise ValueError(f"a cell fixes the bases; it takes no layout (got {self.layout!r})")
         if self.max_arms is not None and self.max_arms < max(self.arm_counts):
             raise ValueError(f"max_arms={self.max_arms} is smaller than the largest team {max(self.arm_counts)}")
 
@@ -190,6 +198,30 @@ def sample_bases_original(rng: np.random.Generator, teams, slots: int):
     return base_pos, rng.uniform(-np.pi, np.pi, (n, slots)), task_difficulty(base_pos, active)
 
 
+def check_cell(cell) -> None:
+    """Raise ValueError unless ``cell`` is a list of (x, y, yaw) bases no two closer than
+    ``MIN_BASE_SPACING``."""
+    rows = np.asarray(cell, dtype=float) if len(cell) else np.zeros((0, 3))
+    if rows.ndim != 2 or rows.shape[1] != 3 or not len(rows):
+        raise ValueError(f"a cell is a list of bases [x, y, yaw] (m, m, rad), one per arm; got {cell!r}")
+    if not np.isfinite(rows).all():
+        raise ValueError(f"a cell's bases must be finite numbers; got {cell!r}")
+    gap = np.linalg.norm(rows[:, None, :2] - rows[None, :, :2], axis=-1) + np.eye(len(rows)) * 1e9
+    if gap.min() < MIN_BASE_SPACING:
+        i, j = np.unravel_index(np.argmin(gap), gap.shape)
+        raise ValueError(f"cell bases {i} and {j} are {gap[i, j]:.3f} m apart, closer than {MIN_BASE_SPACING} m")
+
+
+def cell_bases(cell, count: int, slots: int):
+    """Base positions [count, slots, 3], yaws [count, slots] and difficulty [count] of
+    ``count`` tasks in the fixed ``cell`` (the paper's difficulty of its layout)."""
+    rows = np.asarray(cell, dtype=float)
+    base_pos, yaw = np.zeros((count, slots, 3)), np.zeros((count, slots))
+    base_pos[:, : len(rows), :2], yaw[:, : len(rows)] = rows[:, :2], rows[:, 2]
+    active = np.broadcast_to(np.arange(slots) < len(rows), (count, slots))
+    return base_pos, yaw, task_difficulty(base_pos, active)
+
+
 def _hemisphere_targets(rng: np.random.Generator, shape) -> np.ndarray:
     """Uniform random points [*shape, 3] in the workspace hemisphere (base frame)."""
     direction = rng.normal(size=(*shape, 3))
@@ -264,7 +296,9 @@ def generate_chunk(spec: GenerationSpec, chunk: int) -> Tasks:
     difficulty, configs = np.zeros(n), np.zeros((3, n, slots, 6))
     todo = np.ones(n, bool)
     while todo.any():  # tasks whose configurations got stuck start over with a new layout
-        if spec.layout == "original":
+        if spec.cell is not None:
+            pos, yaw, diff = cell_bases(spec.cell, int(todo.sum()), slots)
+        elif spec.layout == "original":
             pos, yaw, diff = sample_bases_original(rng, teams[todo], slots)
         else:
             pos, yaw, diff = sample_bases(rng, teams[todo], difficulty_bins[todo], slots)
@@ -306,7 +340,8 @@ def generate_chunk(spec: GenerationSpec, chunk: int) -> Tasks:
 
 def spec_record(spec: GenerationSpec) -> dict:
     """``spec`` as JSON-serialisable data (stored beside partial and finished datasets)."""
-    return {**dataclasses.asdict(spec), "arm_counts": list(spec.arm_counts)}
+    cell = None if spec.cell is None else [list(base) for base in spec.cell]
+    return {**dataclasses.asdict(spec), "arm_counts": list(spec.arm_counts), "cell": cell}
 
 
 def _make_chunk(spec: GenerationSpec, chunk: int, path: pathlib.Path) -> int:
