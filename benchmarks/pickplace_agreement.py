@@ -1,14 +1,14 @@
 """Whole-run agreement of the pick-and-place physics backends: MuJoCo C against MJX.
 
 The same plans (runs of ``--seed``) run to the end on MuJoCo C (one process, in lockstep)
-and on MJX (``--impl``: MuJoCo Warp or XLA; one jitted batch, XLA on the CPU in batches of
-4), with the shipped policy; per run: the outcome, the first cause, every arm's phase
+and on MJX (``--impl``: MuJoCo Warp or XLA; one jitted batch), with the shipped policy; per run: the outcome, the first cause, every arm's phase
 sequence with the control step each phase began (rise, reach, grasp, close, lift, ...,
 release, home, done), the control steps, and the largest difference of the objects' final
 positions. Two runs agree when outcome and cause, every arm's phase sequence and the run's
 length are the same and every phase began within ``--tolerance`` control steps on both.
 
     python benchmarks/pickplace_agreement.py --runs 20 --seed 1000 --json
+    python benchmarks/pickplace_agreement.py --runs 8 --seed 1000 --impl jax --json
 """
 
 from __future__ import annotations
@@ -21,7 +21,13 @@ import jax
 import numpy as np
 from common import cpu_name
 
-from mjx_multiarm.pickplace.backends import MJX_IMPLS, phase_timing_difference, run_mjx, run_mujoco
+from mjx_multiarm.pickplace.backends import (
+    MJX_IMPLS,
+    fix_xla_cpu_scheduler,
+    phase_timing_difference,
+    run_mjx,
+    run_mujoco,
+)
 from mjx_multiarm.pickplace.plans import plan_runs
 from mjx_multiarm.pickplace.scene import build_scene
 from mjx_multiarm.planner.policy import Planner
@@ -69,6 +75,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.runs < 1 or args.tolerance < 0:
         parser.error("--runs must be >= 1 and --tolerance >= 0")
+    if args.impl == "jax":
+        fix_xla_cpu_scheduler()  # before JAX starts: the runs in one batch on the CPU
     report = compare(args.runs, args.seed, args.impl, args.tolerance)
     print("| run | MuJoCo C | MJX | same phase sequence | phase changes | largest start difference (control steps) "
           "| control steps (C / MJX) | object difference (m) |")

@@ -3,7 +3,7 @@
 Each measurement runs a batch of pick-and-place runs (held-out plans of ``--seed``) for
 ``--steps`` control steps of 12 physics steps each (1/240 s), with the shipped policy, on
 MuJoCo C (one process, the runs in lockstep) or MJX (jitted ``vmap`` over the batch) on
-MuJoCo Warp (``mjx-warp``) or on XLA (``mjx``; on the CPU backend in calls of at most 4 runs).
+MuJoCo Warp (``mjx-warp``) or on XLA (``mjx``; with ``XLA_CPU_SCHEDULER_FIX``, any batch).
 Each backend is timed twice on the same batch: the first call compiles (the controller and
 policy; on MJX also the physics), the second is the steady state, which also includes
 settling every run's start on MuJoCo C (120 physics steps, both backends). Physics steps/s
@@ -11,7 +11,7 @@ counts the steps of runs still going (a run that ended early stops counting; MJX
 computes it, masked); ``computed`` counts every slot of the batch.
 
     python benchmarks/pickplace_throughput.py --backend mujoco,mjx-warp --batch 1,8,64,256 --steps 40
-    python benchmarks/pickplace_throughput.py --backend mjx --batch 1,4 --steps 20
+    python benchmarks/pickplace_throughput.py --backend mjx --batch 1,8,64 --steps 20
     python benchmarks/pickplace_throughput.py --backend mjx-warp,mjx --batch 500 --steps 100 --json   # GPU
 
 With ``--json`` every measurement also prints one JSON line.
@@ -28,7 +28,7 @@ import jax
 from common import cpu_name
 
 from eval.pickplace import MJX_BACKENDS
-from mjx_multiarm.pickplace.backends import run_mjx, run_mujoco
+from mjx_multiarm.pickplace.backends import fix_xla_cpu_scheduler, run_mjx, run_mujoco
 from mjx_multiarm.pickplace.plans import plan_runs
 from mjx_multiarm.pickplace.protocol import SUBSTEPS
 from mjx_multiarm.pickplace.scene import build_scene
@@ -76,6 +76,8 @@ def main() -> None:
     batches = [int(b) for b in args.batch.split(",")]
     if min(batches) < 1 or args.steps < 1:
         parser.error("--batch and --steps must be >= 1")
+    if "mjx" in backends:
+        fix_xla_cpu_scheduler()  # before JAX starts: XLA's MJX in batches of any size on the CPU
     print(f"{cpu_name()}, JAX devices {jax.devices()}")
     for backend in backends:
         for batch in batches:

@@ -2,7 +2,7 @@
 
     python -m eval.pickplace --runs 500 --seed 1000 --out results/pickplace --json
     python -m eval.pickplace --runs 64 --backend mjx-warp --batch 64 # MJX on MuJoCo Warp: jitted batches, CPU or GPU
-    python -m eval.pickplace --runs 64 --backend mjx --batch 64      # MJX on XLA: jitted batches (CPU: of 4)
+    python -m eval.pickplace --runs 64 --backend mjx --batch 64      # MJX on XLA: jitted batches
     python -m eval.pickplace --runs 20 --render 2                    # PNG frames (+ MP4) of 2 runs
     python -m eval.pickplace --runs 500 --seed 1000 --safe           # the policy's team steps shielded
     python -m eval.pickplace --runs 500 --approach-height 0 --start-height 0   # the original protocol
@@ -11,8 +11,8 @@
 Every arm runs the protocol of :mod:`mjx_multiarm.pickplace.protocol` with the shared
 reaching policy (default: the shipped one) under MuJoCo physics: MuJoCo C (default; runs in
 lockstep batches spread over ``--workers`` processes) or MJX (``--batch`` runs per jitted
-call) on MuJoCo Warp (``mjx-warp``; the ``warp`` extra) or on XLA (``mjx``; at most 4 runs
-per call on the CPU backend, see :data:`~mjx_multiarm.pickplace.backends.MJX_CPU_BATCH`).
+call) on MuJoCo Warp (``mjx-warp``; the ``warp`` extra) or on XLA (``mjx``; with
+:data:`~mjx_multiarm.pickplace.backends.XLA_CPU_SCHEDULER_FIX`, set before JAX starts).
 Run r of seed S draws its objects and initial configuration from ``(S, r)``, so a seed picks
 the same runs on either backend. With ``--safe`` a run whose scripted rise is not certified
 free in the shield's collision model (1 cm to spare) draws its initial configuration again
@@ -256,6 +256,10 @@ def main(argv=None) -> None:
         parser.error(f"--render must be in [0, --runs], got {args.render}")
     if args.checkpoint is not None and not args.checkpoint.exists():
         parser.error(f"--checkpoint {args.checkpoint}: no such policy file or run directory")
+    if args.backend == "mjx":  # before JAX starts its backend: batches of any size on the CPU
+        from mjx_multiarm.pickplace.backends import fix_xla_cpu_scheduler
+
+        fix_xla_cpu_scheduler()
     from mjx_multiarm.pickplace.scene import build_scene
 
     scene = build_scene()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import csv
 import json
+import os
 import pathlib
 
 import jax
@@ -334,11 +335,13 @@ def test_timeouts_and_collisions_end_runs(scene):
             assert list(arm.values()) == sorted(arm.values()) and max(arm.values()) < result.control_steps
 
 
-def test_mjx_runs_in_batches_of_at_most_four_on_cpu(scene, monkeypatch):
-    """On the CPU backend XLA's MJX batches of 8 runs hang in XLA's runtime (jaxlib 0.10.2), so
-    ``run_mjx`` splits the runs into batches of 4, padding the last with its last run;
+def test_mjx_runs_in_batches_of_at_most_four_on_cpu_without_the_scheduler_fix(scene, monkeypatch):
+    """On the CPU backend XLA's MJX batches of 8 runs hang in XLA's runtime (jaxlib 0.10.2)
+    unless it started with ``XLA_CPU_SCHEDULER_FIX``; without it ``run_mjx`` splits the runs
+    into batches of 4, padding the last with its last run, and with it takes them all;
     MuJoCo Warp takes them all at once, or in batches of the size asked for."""
     assert jax.default_backend() == "cpu"
+    monkeypatch.setattr(backends, "_scheduler_fixed", lambda: False)
     batches = []
 
     def fake_batch(scene, policy_step, plans, max_control_steps, chunk, impl):
@@ -361,6 +364,69 @@ def test_mjx_runs_in_batches_of_at_most_four_on_cpu(scene, monkeypatch):
     assert batches == [[0, 1, 2, 3], [4, 5, 5, 5]]
     with pytest.raises(ValueError, match="impl must be one of"):
         backends.run_mjx(scene, None, six, impl="c")
+    batches.clear()
+    monkeypatch.setattr(backends, "_scheduler_fixed", lambda: True)
+    assert backends.run_mjx(scene, None, six, max_control_steps=5) == [0, 1, 2, 3, 4, 5]
+    assert batches == [[0, 1, 2, 3, 4, 5]]
+
+
+def test_the_scheduler_fix_takes_effect_only_before_jax_starts():
+    """``fix_xla_cpu_scheduler`` puts the option in ``XLA_FLAGS`` in a process whose JAX has not
+    started its backend, and says so; once the backend has started without it, it says it is
+    not in effect and leaves ``XLA_FLAGS`` as it was."""
+    import subprocess
+    import sys
+
+    script = ("import os, sys, jax\n"
+              "from mjx_multiarm.pickplace.backends import fix_xla_cpu_scheduler, XLA_CPU_SCHEDULER_FIX\n"
+              "if sys.argv[1] == 'late': jax.numpy.zeros(1).block_until_ready()\n"
+              "print(fix_xla_cpu_scheduler(), XLA_CPU_SCHEDULER_FIX in os.environ.get('XLA_FLAGS', ''))\n")
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    for when, expected in (("early", "True True"), ("late", "False False")):
+        out = subprocess.run([sys.executable, "-c", script, when], env=env, capture_output=True, text=True, check=True)
+        assert out.stdout.split("\n")[-2] == expected, (when, out.stdout, out.stderr)
+
+
+@pytest.mark.slow
+def test_the_minimal_xla_reproduction_runs_a_batch_of_eight_with_the_fix():
+    """``benchmarks/mjx_xla_hang.py``: eight convex meshes, one ``jit(vmap(mjx.step))`` call at
+    batch 8, in a child process started with ``XLA_CPU_SCHEDULER_FIX``: it returns."""
+    import importlib.util
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "mjx_xla_hang.py"
+    spec = importlib.util.spec_from_file_location("mjx_xla_hang", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.probe(8, fix=True, timeout=300)["outcome"] == "ran"
+
+
+def test_xla_collision_sizes_flag_every_dropped_contact(scene, monkeypatch):
+    """MJX (XLA) culls each collision function's candidate pairs and the run's contacts to
+    fixed sizes; the backend's check flags a state where a pair that can touch (bounding
+    spheres overlapping, as in MuJoCo C's contacts) or an active contact may have been cut."""
+    from mujoco import mjx
+
+    plan = plans.plan_runs(scene, 1000, 1)
+    models, datas = backends._settled(scene, plan)
+    m, d = models[0], datas[0]
+    mujoco.mj_forward(m, d)
+    x = mjx.put_data(m, d)
+    assert not backends._xla_collision_dropped(m)(x)
+    groups = [np.asarray(g)[:, :2] for g in backends.collision_driver._geom_groups(m).values()]
+    gaps = [np.linalg.norm(d.geom_xpos[g[:, 1]] - d.geom_xpos[g[:, 0]], axis=1) - m.geom_rbound[g].sum(1) for g in groups]
+    most = max(int((gap <= 0).sum()) for gap in gaps)
+    assert most > 1
+    for g1, g2 in zip(d.contact.geom1[:d.ncon], d.contact.geom2[:d.ncon]):  # MuJoCo C's contacts overlap
+        rows = [np.flatnonzero((g == [g1, g2]).all(1) | (g == [g2, g1]).all(1)) for g in groups]
+        i = next(i for i, r in enumerate(rows) if r.size)
+        row = rows[i][0]
+        assert gaps[i][row] <= 0
+    monkeypatch.setattr(backends, "MJX_MAX_GEOM_PAIRS", most - 1)
+    assert backends._xla_collision_dropped(m)(x)
+    monkeypatch.setattr(backends, "MJX_MAX_GEOM_PAIRS", most)
+    assert not backends._xla_collision_dropped(m)(x)
+    active = x.replace(_impl=x._impl.replace(contact=x._impl.contact.replace(dist=jnp.full_like(x._impl.contact.dist, -1e-3))))
+    assert backends._xla_collision_dropped(m)(active)
 
 
 @pytest.mark.slow

@@ -17,13 +17,16 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
+import os
 import time
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from jax._src import xla_bridge  # the backend-start hook (jaxlib 0.10.2)
 from mujoco import mjx
+from mujoco.mjx._src import collision_driver  # MJX's collision groups, to check its culling
 
 from mjx_multiarm.pickplace.plans import RunPlan
 from mjx_multiarm.pickplace.protocol import (
@@ -39,7 +42,7 @@ from mjx_multiarm.pickplace.protocol import (
     make_controller,
     relative_pose,
 )
-from mjx_multiarm.pickplace.scene import NUM_ARMS, PickPlaceScene
+from mjx_multiarm.pickplace.scene import MJX_MAX_CONTACTS, MJX_MAX_GEOM_PAIRS, NUM_ARMS, PickPlaceScene
 
 SETTLE_STEPS = 120  # 0.5 s
 
@@ -222,6 +225,7 @@ def _mjx_advance(scene: PickPlaceScene, policy_step, chunk: int, max_steps: int,
     finger_act = jnp.asarray(scene.finger_actuators)
     welds = jnp.asarray(scene.welds)
     per_run = _per_run_fields(impl)
+    dropped = _xla_collision_dropped(scene.model) if impl == "jax" else lambda d: jnp.zeros((), bool)
 
     def physics(geom_pos, eq_data):
         return model.tree_replace({"geom_pos": geom_pos, "eq_data": eq_data})
@@ -238,22 +242,51 @@ def _mjx_advance(scene: PickPlaceScene, policy_step, chunk: int, max_steps: int,
         m = physics(geom_pos, eq_data)
 
         def substep(k, carry):
-            d, touched = carry
+            d, touched, overflow = carry
             ctrl = d.ctrl.at[arm_act].set(_lerp(previous.arm_target, cmd.arm_target, k))
             ctrl = ctrl.at[finger_act].set(_lerp(previous.gripper, cmd.gripper, k)[:, None])
             d = mjx.step(m, d.replace(ctrl=ctrl))
-            return d, touched | _contacts_mjx(scene, d, world, impl)
+            return d, touched | _contacts_mjx(scene, d, world, impl), overflow | dropped(d)
 
-        new_d, touched = jax.lax.fori_loop(0, SUBSTEPS, substep, (d, jnp.zeros((NUM_ARMS, TOUCH_KINDS), bool)))
+        new_d, touched, overflow = jax.lax.fori_loop(
+            0, SUBSTEPS, substep, (d, jnp.zeros((NUM_ARMS, TOUCH_KINDS), bool), jnp.zeros((), bool)))
         new_d = per_run(lambda old, new: jnp.where(state.ended, old, new), d, new_d)  # an ended run stands still
-        return eq_data, new_d, state, _sense_mjx(scene, new_d, touched)
+        return eq_data, new_d, state, _sense_mjx(scene, new_d, touched), overflow & ~state.ended
 
     def advance(world, plan, geom_pos, eq_data, d, state, sensors):
         def body(_, carry):
-            return one_step(world, plan, geom_pos, *carry)
-        return jax.lax.fori_loop(0, chunk, body, (eq_data, d, state, sensors))
+            *carry, overflow = carry
+            *carry, more = one_step(world, plan, geom_pos, *carry)
+            return *carry, overflow | more
+        return jax.lax.fori_loop(0, chunk, body, (eq_data, d, state, sensors, jnp.zeros((), bool)))
 
     return jax.jit(jax.vmap(advance))
+
+
+def _xla_collision_dropped(model: mujoco.MjModel):
+    """A function of one run's ``mjx.Data`` after an XLA step: whether its collision sizes
+    (:data:`~mjx_multiarm.pickplace.scene.MJX_MAX_GEOM_PAIRS`, ``MJX_MAX_CONTACTS``) may have
+    dropped a contact in that step. MJX keeps, in every collision function with more
+    candidate pairs than ``max_geom_pairs``, the nearest pairs by bounding sphere: a pair can
+    only touch where its spheres overlap, so none was dropped unless more pairs overlap than
+    it keeps. Of the contacts it keeps the deepest ``max_contact_points``: one may have been
+    dropped only if every kept contact is active. ``geom_xpos`` after the step is where its
+    collision ran (the integrator moves only ``qpos``)."""
+    margin = model.geom_margin
+    groups = [np.asarray(pairs)[:, :2] for pairs in collision_driver._geom_groups(model).values()]
+    culled = [g for g in groups if len(g) > MJX_MAX_GEOM_PAIRS]
+    geom1 = jnp.asarray(np.concatenate([g[:, 0] for g in culled]))
+    geom2 = jnp.asarray(np.concatenate([g[:, 1] for g in culled]))
+    reach = jnp.asarray(np.concatenate([model.geom_rbound[g].sum(1) + margin[g].sum(1) for g in culled]))
+    group = jnp.asarray(np.concatenate([np.full(len(g), i) for i, g in enumerate(culled)]))
+
+    def dropped(d) -> jnp.ndarray:
+        gap = jnp.linalg.norm(d.geom_xpos[geom2] - d.geom_xpos[geom1], axis=-1) - reach
+        overlapping = jax.ops.segment_sum((gap <= 0).astype(jnp.int32), group, num_segments=len(culled))
+        contact = d._impl.contact
+        return (overlapping > MJX_MAX_GEOM_PAIRS).any() | (contact.dist < contact.includemargin).all()
+
+    return dropped
 
 
 def _per_run_fields(impl: str):
@@ -286,24 +319,54 @@ def _sense_mjx(scene: PickPlaceScene, d, touched) -> Sensors:
                    object_pos=d.xpos[jnp.asarray(scene.object_body)].astype(jnp.float32), contacts=touched)
 
 
-#: Runs per jitted call of XLA's MJX on the CPU backend: with jaxlib 0.10.2, batches of 8
-#: runs hang after compiling (every XLA CPU worker waits for work; benchmarks/RESULTS.md),
-#: 1-4 run. MuJoCo Warp (``impl="warp"``) runs any batch.
+#: The XLA CPU option that ends a wedge of batched MJX convex collisions: with jaxlib 0.10.2
+#: and XLA's concurrency-optimized scheduler, a jitted ``vmap`` of ``mjx.step`` over 8 or more
+#: runs of a scene with mesh geoms compiles, then never returns (every worker thread idle;
+#: ``benchmarks/mjx_xla_hang.py`` reproduces it with 8 meshes). It must be in ``XLA_FLAGS``
+#: before JAX starts its backend (:func:`fix_xla_cpu_scheduler`).
+XLA_CPU_SCHEDULER_FIX = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+#: Runs per jitted call of XLA's MJX on the CPU backend where that option is not in effect
+#: (1-4 run). MuJoCo Warp (``impl="warp"``) runs any batch.
 MJX_CPU_BATCH = 4
+
+
+def fix_xla_cpu_scheduler() -> bool:
+    """Put :data:`XLA_CPU_SCHEDULER_FIX` in ``XLA_FLAGS`` unless JAX has started its CPU
+    backend (XLA reads its flags then); whether the option is in effect for this process."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if XLA_CPU_SCHEDULER_FIX not in flags and "cpu" not in _started_with_fix:
+        os.environ["XLA_FLAGS"] = f"{flags} {XLA_CPU_SCHEDULER_FIX}".strip()
+    return _scheduler_fixed()
+
+
+def _scheduler_fixed() -> bool:
+    """Whether the CPU backend started, or will start, with :data:`XLA_CPU_SCHEDULER_FIX`."""
+    return _started_with_fix.get("cpu", XLA_CPU_SCHEDULER_FIX in os.environ.get("XLA_FLAGS", ""))
+
+
+_started_with_fix: dict[str, bool] = {}  # per platform: XLA_FLAGS held the fix when its backend started
+
+
+def _record_start(backend) -> None:
+    _started_with_fix[backend.platform] = XLA_CPU_SCHEDULER_FIX in os.environ.get("XLA_FLAGS", "")
+
+
+xla_bridge.register_backend_initialization_hook(_record_start)
 
 
 def run_mjx(scene: PickPlaceScene, policy_step, plans: RunPlan, max_control_steps: int = MAX_CONTROL_STEPS,
             chunk: int = 20, impl: str = "jax", batch: int | None = None) -> list[RunResult]:
     """Run every plan of ``plans`` (leading dim = runs) on MJX (``impl``: one of
     :data:`MJX_IMPLS`) from the settled MuJoCo C states, in batches of ``batch`` runs (all
-    of them by default; at most :data:`MJX_CPU_BATCH` with XLA on the CPU backend), the last
-    one padded; the host checks between chunks of ``chunk`` control steps whether every run
-    of a batch has ended."""
+    of them by default; at most :data:`MJX_CPU_BATCH` with XLA on the CPU backend unless
+    :func:`fix_xla_cpu_scheduler` took effect), the last one padded; the host checks between
+    chunks of ``chunk`` control steps whether every run of a batch has ended, and raises where
+    a run's XLA collision may have dropped a contact (:func:`_xla_collision_dropped`)."""
     if impl not in MJX_IMPLS:
         raise ValueError(f"impl must be one of {MJX_IMPLS}, got {impl!r}")
     runs = len(plans.objects)
     size = min(batch or runs, runs)
-    if impl == "jax" and jax.default_backend() == "cpu":
+    if impl == "jax" and jax.default_backend() == "cpu" and not _scheduler_fixed():
         size = min(size, MJX_CPU_BATCH)
     results = []
     for first in range(0, runs, size):
@@ -346,7 +409,12 @@ def _run_mjx_batch(scene: PickPlaceScene, policy_step, plans: RunPlan, max_contr
     state = jax.vmap(initial_state)(plans)
     world = jnp.arange(runs)
     while not bool(np.asarray(state.ended).all()):  # the controller ends every run by max_control_steps
-        eq_data, d, state, sensors = advance(world, plans, geom_pos, eq_data, d, state, sensors)
+        eq_data, d, state, sensors, dropped = advance(world, plans, geom_pos, eq_data, d, state, sensors)
+        if np.asarray(dropped).any():
+            raise RuntimeError(f"MJX (XLA) may have dropped a contact: more candidate pairs overlap than the "
+                               f"{MJX_MAX_GEOM_PAIRS} it keeps per collision function, or every one of the "
+                               f"{MJX_MAX_CONTACTS} contacts it keeps is active: raise scene.MJX_MAX_GEOM_PAIRS / "
+                               f"MJX_MAX_CONTACTS")
         if impl == "warp" and np.asarray(d._impl.overflow).any():
             raise RuntimeError(f"MuJoCo Warp ran out of contacts or constraint rows ({WARP_CONTACTS_PER_RUN} contacts per "
                                f"run, {WARP_CONSTRAINT_ROWS} rows): raise WARP_CONTACTS_PER_RUN / WARP_CONSTRAINT_ROWS")

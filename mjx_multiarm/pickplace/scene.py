@@ -73,6 +73,13 @@ OBJECT_BITS = (1, 3)
 #: 4 << i marks arm i, in the conaffinity of every other arm (:func:`arm_bits`).
 ARM_STATIC_BIT, ARM_FIRST_BIT = 2, 4
 
+#: MJX (XLA) collision sizes: each collision function's candidate pairs are culled to the
+#: ``MJX_MAX_GEOM_PAIRS`` nearest by bounding sphere, and the run's contacts to the
+#: ``MJX_MAX_CONTACTS`` deepest (the constraint rows follow); the MJX backend raises where a
+#: run needs more (:mod:`mjx_multiarm.pickplace.backends`). MuJoCo C and MuJoCo Warp ignore both.
+MJX_MAX_GEOM_PAIRS = 128
+MJX_MAX_CONTACTS = 64
+
 # Kinds of geom owners, for classifying contacts.
 FLOOR, BIN, ARM, OBJECT = 0, 1, 2, 3
 
@@ -230,8 +237,9 @@ def build_spec(assets: PickPlaceAssets) -> mujoco.MjSpec:
     spec.option.timestep = TIMESTEP
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.cone = mujoco.mjtCone.mjCONE_PYRAMIDAL
-    # MJX: cull each collision function's candidate pairs to the nearest few (bounding spheres).
-    spec.add_numeric(name="max_geom_pairs", data=[16])
+    # MJX (XLA) collision sizes, first: MJX reads a numeric at index = its id in numeric_data.
+    spec.add_numeric(name="max_geom_pairs", data=[MJX_MAX_GEOM_PAIRS])
+    spec.add_numeric(name="max_contact_points", data=[MJX_MAX_CONTACTS])
     world = spec.worldbody
     # A box, not a plane: parked object pieces (far away in their slot's frame) never reach it.
     world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_BOX, pos=[0.0, 0.0, -FLOOR_HALF[2]], size=FLOOR_HALF,
